@@ -1,0 +1,46 @@
+"""Surface meshes on disk: binary PLY with float64 vertices and a per-vertex structure label."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from plyfile import PlyData, PlyElement
+
+from .errors import InputError
+from .io import atomic_path
+
+
+def write_ply(path: str | Path, verts: np.ndarray, faces: np.ndarray, labels: np.ndarray | None = None) -> None:
+    """Write atomically. verts : (n, 3) float, faces : (m, 3) int, labels : (n,) uint8 or None."""
+    verts = np.asarray(verts, dtype=np.float64)
+    fields = [("x", "f8"), ("y", "f8"), ("z", "f8")] + ([("label", "u1")] if labels is not None else [])
+    vdata = np.empty(len(verts), dtype=fields)
+    vdata["x"], vdata["y"], vdata["z"] = verts.T
+    if labels is not None:
+        vdata["label"] = labels
+    fdata = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
+    fdata["vertex_indices"] = faces
+    ply = PlyData([PlyElement.describe(vdata, "vertex"), PlyElement.describe(fdata, "face")], text=False)
+    with atomic_path(path) as tmp:
+        ply.write(str(tmp))
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Read (verts (n, 3) float64, faces (m, 3) int64, labels (n,) uint8 or None); InputError names bad files."""
+    path = Path(path)
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"].data
+        verts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
+        faces = np.stack(ply["face"].data["vertex_indices"]).astype(np.int64) if len(ply["face"].data) else np.zeros((0, 3), np.int64)
+        labels = np.asarray(v["label"], dtype=np.uint8) if "label" in v.dtype.names else None
+    except (OSError, ValueError, KeyError, EOFError) as e:
+        raise InputError(f"{path}: not a readable PLY mesh ({type(e).__name__}: {e})") from e
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise InputError(f"{path}: faces must be triangles")
+    if not np.all(np.isfinite(verts)):
+        raise InputError(f"{path}: mesh has NaN or infinite vertex coordinates")
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(verts)):
+        raise InputError(f"{path}: face indices out of range")
+    return verts, faces, labels

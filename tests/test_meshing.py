@@ -1,0 +1,125 @@
+"""Masks to meshes against analytic surfaces (DESIGN section 6)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings, strategies as st
+
+from meshsar_builder.errors import InputError, MeshError
+from meshsar_builder.meshing import MeshingParams, labels_to_surface, signed_distance
+from meshsar_builder.sources import STRUCTURES
+
+from .conftest import ball_volume
+
+LV = STRUCTURES["lv"]
+
+
+def mesh_of(mask, affine, params=MeshingParams()):
+    s = labels_to_surface(mask.astype(np.uint8) * LV, affine, ["lv"], params)
+    return s, trimesh.Trimesh(s.verts, s.faces, process=False)
+
+
+def ellipsoid_area(a, b, c):
+    """Area of an ellipsoid from a finely subdivided icosphere (relative error < 1e-4)."""
+    sphere = trimesh.creation.icosphere(subdivisions=7)
+    return sphere.apply_scale((a, b, c)).area
+
+
+@pytest.mark.parametrize(
+    "voxel, vol_tol, area_tol",
+    [((1.0, 1.0, 1.0), 0.01, 0.03), ((1.5, 1.5, 8.0), 0.04, 0.04)],
+)
+def test_sphere_volume_and_area(voxel, vol_tol, area_tol):
+    r = 30.0
+    shape = np.ceil(90 / np.asarray(voxel)).astype(int)
+    mask, affine = ball_volume(shape, voxel, r)
+    s, m = mesh_of(mask, affine)
+    assert m.is_watertight and m.euler_number == 2
+    assert abs(m.volume / (4 / 3 * np.pi * r**3) - 1) < vol_tol
+    assert abs(m.area / (4 * np.pi * r**2) - 1) < area_tol
+    np.testing.assert_allclose(m.bounds.mean(axis=0), 0, atol=0.3 * max(voxel))
+
+
+@pytest.mark.parametrize(
+    "voxel, vol_tol, area_tol",
+    [((1.0, 1.0, 1.0), 0.01, 0.03), ((1.5, 1.5, 8.0), 0.04, 0.04)],
+)
+def test_ellipsoid_volume_and_area(voxel, vol_tol, area_tol):
+    axes = (35.0, 25.0, 45.0)
+    shape = np.ceil(110 / np.asarray(voxel)).astype(int)
+    mask, affine = ball_volume(shape, voxel, None, axes_mm=axes)
+    _, m = mesh_of(mask, affine)
+    assert abs(m.volume / (4 / 3 * np.pi * np.prod(axes)) - 1) < vol_tol
+    assert abs(m.area / ellipsoid_area(*axes) - 1) < area_tol
+
+
+def test_outward_normals_and_world_position():
+    """Off-centre ball under a flipped, offset affine: mesh lands at the world centre, normals out."""
+    mask, affine = ball_volume((60, 60, 60), (1, 1, 1), 15, centre_mm=(5, -8, 3))
+    flipped = affine @ np.array([[-1, 0, 0, 59], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    _, m = mesh_of(mask[::-1], flipped)
+    np.testing.assert_allclose(m.bounds.mean(axis=0), (5, -8, 3), atol=0.5)
+    assert m.volume > 0
+    outward = np.einsum("ij,ij->i", m.face_normals, m.triangles_center - m.center_mass)
+    assert (outward > 0).mean() > 0.99
+
+
+def test_signed_distance_zero_halfway_between_voxels():
+    mask = np.zeros((9, 9, 9), bool)
+    mask[:5] = True
+    sd = signed_distance(mask, np.array([2.0, 1.0, 1.0]))
+    # inside voxel next to the boundary is half a step in, outside neighbour half a step out
+    assert sd[4, 4, 4] == pytest.approx(-2.0) and sd[5, 4, 4] == pytest.approx(2.0)
+
+
+def test_torus_with_small_hole_is_closed():
+    """A ring whose hole (4 mm across) survives smoothing is closed by morphological closing."""
+    coords = np.arange(60) - 29.5
+    X, Y, Z = np.meshgrid(coords, coords, coords, indexing="ij")
+    rho = np.hypot(X, Y)
+    mask = (rho - 10.0) ** 2 + Z**2 <= 8.0**2
+    assert not mask[30, 30, 30]  # a real hole
+    s, m = mesh_of(mask, np.eye(4))
+    assert m.is_watertight and m.euler_number == 2 and s.closing_voxels > 0
+
+
+def test_torus_with_large_hole_fails_with_reason():
+    coords = np.arange(80) - 39.5
+    X, Y, Z = np.meshgrid(coords, coords, coords, indexing="ij")
+    mask = (np.hypot(X, Y) - 25.0) ** 2 + Z**2 <= 6.0**2
+    with pytest.raises(MeshError, match=r"not closed genus 0 \(euler=0"):
+        mesh_of(mask, np.eye(4))
+
+
+def test_empty_mask_is_named_input_error():
+    labels = np.zeros((10, 10, 10), np.uint8)
+    labels[2:5, 2:5, 2:5] = STRUCTURES["la"]
+    with pytest.raises(InputError, match=r"case7: none of the structures \['lv', 'rv'\] present \(found: \['la'\]\)"):
+        labels_to_surface(labels, np.eye(4), ["lv", "rv"], MeshingParams(), name="case7")
+
+
+def test_vertex_labels_follow_nearest_structure():
+    mask, affine = ball_volume((50, 50, 50), (1, 1, 1), 18)
+    labels = mask.astype(np.uint8) * STRUCTURES["lv"]
+    z = (np.arange(50) - 24.5)[None, None, :]
+    labels[mask & (z > 0)] = STRUCTURES["la"]
+    s = labels_to_surface(labels, affine, ["lv", "la"], MeshingParams())
+    top, bottom = s.verts[:, 2] > 2, s.verts[:, 2] < -2
+    assert np.all(s.labels[top] == STRUCTURES["la"]) and np.all(s.labels[bottom] == STRUCTURES["lv"])
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    axes=st.tuples(*[st.floats(8, 25)] * 3),
+    voxel=st.tuples(st.floats(0.8, 2.0), st.floats(0.8, 2.0), st.floats(0.8, 6.0)),
+    spacing=st.sampled_from([1.0, 1.5]),
+)
+def test_ellipsoids_any_voxel_size_are_closed_genus0(axes, voxel, spacing):
+    shape = np.ceil(70 / np.asarray(voxel)).astype(int)
+    mask, affine = ball_volume(shape, voxel, None, axes_mm=axes)
+    _, m = mesh_of(mask, affine, MeshingParams(spacing_mm=spacing))
+    assert m.is_watertight and m.euler_number == 2
+    # thick slices lose the caps: a loose bound that still catches gross errors
+    assert abs(m.volume / (4 / 3 * np.pi * np.prod(axes)) - 1) < 0.15
