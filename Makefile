@@ -1,0 +1,34 @@
+# Set-up is automatic: the first target that needs the environment creates .venv,
+# installs torch first (TORCH_SPEC: a CPU wheel by default, so pip does not pull
+# GBs of CUDA packages), then the project with its train and dev extras.
+PYTHON     ?= python3
+VENV       ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+RECIPE     ?= manifests/demo.toml
+WORKERS    ?= 2
+PYTEST_ARGS ?=
+
+PY    := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: install dataset test test-fast clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install "$(TORCH_SPEC)"
+	$(PY) -m pip install -e ".[train,dev]"
+	touch $@
+
+install: $(STAMP)
+
+dataset: $(STAMP)
+	$(VENV)/bin/meshsar build $(RECIPE) --workers $(WORKERS)
+
+test: $(STAMP)
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+clean:
+	rm -rf build

@@ -1,0 +1,245 @@
+"""The stage runner: plans items, skips what is up to date, maps the rest over a pool.
+
+A stage (a module in `stages/`, registered under the `meshsar.stages` entry
+point group) gives the runner a `Stage`: a plan function listing its items
+and a per-item function that writes the item's outputs. The runner owns the
+bookkeeping every stage shares:
+
+- a JSON sidecar per item, `<out>/<stage>/<item>.json`, written last and
+  atomically, holding the input digests, the parameter hash, the code version,
+  output digests and what the item function returned; an item whose sidecar
+  matches and whose outputs exist is skipped;
+- failures: an exception in an item is recorded (stage, item, type, message)
+  and the batch goes on; failures.json and the summary list them at the end;
+- temporaries left by a killed run are removed before a stage runs.
+
+The runner never imports a stage; stages import the library.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing
+import sys
+import time
+import traceback
+from dataclasses import dataclass, field
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any, Callable
+
+from tqdm import tqdm
+
+from . import __version__
+from .errors import MeshsarError
+from .io import read_json, remove_stale_temporaries, sha256_file, sha256_json, write_bytes, write_json
+from .recipe import Recipe
+
+STAGE_ORDER = ("sources", "meshes", "remesh", "register", "ssm", "radar", "shards", "card")
+
+
+@dataclass(frozen=True)
+class Item:
+    """One unit of work of a stage. `data` travels to the item function; `params` are hashed."""
+
+    id: str
+    outputs: tuple[str, ...]  # paths relative to the stage folder
+    inputs: tuple[str, ...] = ()  # files whose content the outputs depend on
+    params: Any = None  # JSON-able: what, besides inputs, the outputs depend on
+    data: Any = None
+
+
+@dataclass(frozen=True)
+class Context:
+    """What an item function may know about the build."""
+
+    out: Path
+    recipe: Recipe
+
+    def stage_dir(self, stage: str) -> Path:
+        return self.out / stage
+
+    def sidecar(self, stage: str, item_id: str) -> Path:
+        return self.out / stage / f"{item_id}.json"
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    version: int  # bump when the stage's code changes its outputs
+    plan: Callable[[Context, "Results"], list[Item]]
+    run: Callable[[Context, Item], dict]
+
+
+@dataclass
+class Results:
+    """Per stage, the sidecar records of items that are done (run now or skipped as up to date)."""
+
+    done: dict[str, dict[str, dict]] = field(default_factory=dict)
+    failures: list[dict] = field(default_factory=list)
+    summary: list[dict] = field(default_factory=list)
+
+    def of(self, stage: str) -> dict[str, dict]:
+        return self.done.get(stage, {})
+
+
+def available_stages() -> dict[str, Stage]:
+    """Registered stages in pipeline order (later issues add stages; the pipeline ends where they end)."""
+    found = {ep.name: ep for ep in entry_points(group="meshsar.stages")}
+    stages = {}
+    for name in STAGE_ORDER:
+        if name not in found:
+            break
+        stages[name] = found[name].load()
+    return stages
+
+
+def code_version(stage: Stage) -> str:
+    return f"{__version__}+{stage.name}.{stage.version}"
+
+
+def _input_digests(item: Item) -> dict[str, str]:
+    return {p: sha256_file(p) for p in item.inputs}
+
+
+def _up_to_date(ctx: Context, stage: Stage, item: Item) -> dict | None:
+    """The item's sidecar record if it matches the item as planned now, else None."""
+    path = ctx.sidecar(stage.name, item.id)
+    if not path.exists():
+        return None
+    try:
+        rec = read_json(path)
+    except (OSError, ValueError):
+        return None
+    stage_dir = ctx.stage_dir(stage.name)
+    if (
+        rec.get("code_version") != code_version(stage)
+        or rec.get("params_sha256") != sha256_json(item.params)
+        or set(rec.get("outputs", {})) != set(item.outputs)
+        or any(not (stage_dir / o).exists() for o in item.outputs)
+        or rec.get("inputs") != _input_digests(item)
+    ):
+        return None
+    return rec
+
+
+def run_item(ctx: Context, stage: Stage, item: Item) -> tuple[dict | None, dict | None]:
+    """Run one item (in a worker); return (sidecar record, None) or (None, failure record)."""
+    t0 = time.perf_counter()
+    try:
+        inputs = _input_digests(item)
+        result = stage.run(ctx, item) or {}
+        stage_dir = ctx.stage_dir(stage.name)
+        missing = [o for o in item.outputs if not (stage_dir / o).exists()]
+        if missing:
+            raise RuntimeError(f"stage {stage.name} did not write {missing}")
+        rec = {
+            "stage": stage.name,
+            "item": item.id,
+            "code_version": code_version(stage),
+            "params_sha256": sha256_json(item.params),
+            "inputs": inputs,
+            "outputs": {o: sha256_file(stage_dir / o) for o in item.outputs},
+            "seconds": round(time.perf_counter() - t0, 3),
+            **result,
+        }
+        write_json(ctx.sidecar(stage.name, item.id), rec)
+        return rec, None
+    except Exception as e:  # a bad item must not stop the batch: record it and go on
+        return None, {
+            "stage": stage.name,
+            "item": item.id,
+            "error": type(e).__name__,
+            "message": str(e),
+            "inputs": list(item.inputs),
+            "traceback": traceback.format_exc(limit=6),
+        }
+
+
+def _make_pool(workers: int) -> cf.Executor | None:
+    if workers <= 1:
+        return None
+    # spawn: Embree, BLAS and torch threads do not survive fork reliably
+    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+def run_stage(ctx: Context, stage: Stage, results: Results, pool: cf.Executor | None, force: bool = False) -> dict:
+    """Plan a stage, skip what is up to date, run the rest; return its summary row."""
+    t0 = time.perf_counter()
+    stage_dir = ctx.stage_dir(stage.name)
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(stage_dir)
+    items = stage.plan(ctx, results)
+    ids = [it.id for it in items]
+    if len(set(ids)) != len(ids):
+        raise RuntimeError(f"stage {stage.name}: duplicate item ids in plan")
+    done, todo = {}, []
+    for it in items:
+        rec = None if force else _up_to_date(ctx, stage, it)
+        if rec is None:
+            todo.append(it)
+        else:
+            done[it.id] = rec
+    failed = []
+    bar = tqdm(total=len(todo), desc=f"{stage.name:>8}", unit="item", disable=not todo, file=sys.stderr)
+    if pool is None:
+        outcomes = (run_item(ctx, stage, it) for it in todo)
+    else:
+        futures = [pool.submit(run_item, ctx, stage, it) for it in todo]
+        outcomes = (f.result() for f in cf.as_completed(futures))
+    for rec, fail in outcomes:
+        bar.update(1)
+        if rec is not None:
+            done[rec["item"]] = rec
+        else:
+            failed.append(fail)
+            bar.write(f"FAILED {stage.name}/{fail['item']}: {fail['error']}: {fail['message']}")
+    bar.close()
+    # Keep plan order, so later stages see items in the same order whatever finished first.
+    results.done[stage.name] = {i: done[i] for i in ids if i in done}
+    results.failures.extend(sorted(failed, key=lambda f: f["item"]))
+    row = {
+        "stage": stage.name,
+        "items": len(items),
+        "ran": len(todo) - len(failed),
+        "skipped": len(items) - len(todo),
+        "failed": len(failed),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    results.summary.append(row)
+    return row
+
+
+def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None, force: tuple[str, ...] = ()) -> Results:
+    """Run the registered stages in order up to `until`; write failures.json and the recipe copy."""
+    stages = available_stages()
+    for name in (until, *force):
+        if name is not None and name not in stages:
+            raise MeshsarError(f"unknown stage {name!r}; available: {', '.join(stages)}")
+    out.mkdir(parents=True, exist_ok=True)
+    write_bytes(out / "recipe.toml", recipe.text.encode("utf-8"))
+    ctx = Context(out=out, recipe=recipe)
+    results = Results()
+    pool = _make_pool(workers)
+    try:
+        for name, stage in stages.items():
+            run_stage(ctx, stage, results, pool, force=name in force)
+            if name == until:
+                break
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    write_json(out / "failures.json", results.failures)
+    return results
+
+
+def format_summary(results: Results) -> str:
+    """The end-of-build table, then one line per failure."""
+    head = f"{'stage':<10}{'items':>7}{'ran':>7}{'skipped':>9}{'failed':>8}{'seconds':>10}"
+    lines = [head, "-" * len(head)]
+    for r in results.summary:
+        lines.append(f"{r['stage']:<10}{r['items']:>7}{r['ran']:>7}{r['skipped']:>9}{r['failed']:>8}{r['seconds']:>10.1f}")
+    if results.failures:
+        lines.append(f"\n{len(results.failures)} item(s) failed (see failures.json):")
+        lines += [f"  {f['stage']}/{f['item']}: {f['error']}: {f['message']}" for f in results.failures]
+    return "\n".join(lines)

@@ -1,0 +1,57 @@
+"""Stage `meshes`: each label map's union of structures to a closed genus-0 surface.
+
+Outputs: `meshes/<item>.ply` (RAS mm, per-vertex canonical structure label) and
+its sidecar `meshes/<item>.json` with size, area, volume, topology and provenance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import trimesh
+
+from meshsar_builder.meshfile import write_ply
+from meshsar_builder.meshing import labels_to_surface
+from meshsar_builder.runner import Context, Item, Results, Stage
+from meshsar_builder.sources import LabelItem, read_label_map
+
+NAME = "meshes"
+
+
+def plan(ctx: Context, results: Results) -> list[Item]:
+    specs = {s.name: s for s in ctx.recipe.sources}
+    meshing = dataclasses.asdict(ctx.recipe.meshing)
+    items = []
+    for rec in results.of("sources").values():
+        for d in rec["label_items"]:
+            li = LabelItem.from_json(d)
+            spec = specs[li.source]
+            params = {"meshing": meshing, "structures": list(spec.structures), "table": d["table"]}
+            items.append(Item(li.item_id, (f"{li.item_id}.ply",), inputs=(li.path,), params=params, data=(d, spec.structures, spec.use)))
+    return items
+
+
+def run(ctx: Context, item: Item) -> dict:
+    d, structures, use = item.data
+    li = LabelItem.from_json(d)
+    labels, affine = read_label_map(li.path, li.table)
+    surf = labels_to_surface(labels, affine, list(structures), ctx.recipe.meshing, name=li.path)
+    write_ply(ctx.stage_dir(NAME) / f"{item.id}.ply", surf.verts, surf.faces, surf.labels)
+    mesh = trimesh.Trimesh(surf.verts, surf.faces, process=False)
+    lo, hi = surf.verts.min(axis=0), surf.verts.max(axis=0)
+    return {
+        "n_verts": len(surf.verts),
+        "n_faces": len(surf.faces),
+        "area_mm2": round(float(mesh.area), 3),
+        "volume_ml": round(float(mesh.volume) / 1000.0, 4),
+        "euler": int(mesh.euler_number),
+        "watertight": bool(mesh.is_watertight),
+        "closing_voxels": surf.closing_voxels,
+        "spacing_mm": ctx.recipe.meshing.spacing_mm,
+        "center_mm": [round(float(c), 4) for c in (lo + hi) / 2],
+        "use": use,
+        **{k: d[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")},
+    }
+
+
+STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
