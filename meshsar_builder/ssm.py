@@ -1,0 +1,269 @@
+"""Statistical shape model: generalised Procrustes alignment, PCA, seeded sampling, quality.
+
+Shapes are template fits that share one set of faces, so vertex i of every shape is the
+same anatomical point. Alignment removes rotation and translation only: size is kept,
+since it matters clinically.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from meshsar_builder.errors import MeshError
+from meshsar_builder.io import atomic_path
+from meshsar_builder.registration import surface_distances
+from meshsar_builder.remesh import self_intersecting_faces
+
+
+@dataclass(frozen=True)
+class SSMParams:
+    """The recipe's [ssm] section.
+
+    samples: shapes drawn from the model for the dataset.
+    variance: cumulative fraction of the variance the kept modes explain.
+    truncate_sigma: coefficients are drawn from N(0, lambda_i) truncated at +-truncate_sigma.
+    max_redraws: redraws allowed per sample whose mesh self-intersects before it fails.
+    procrustes_iterations: most generalised Procrustes iterations (stops earlier on convergence).
+    specificity_samples: random shapes for the specificity measure.
+    distance_samples: area-weighted surface samples per side in the specificity distances.
+    """
+
+    samples: int = 48
+    variance: float = 0.98
+    truncate_sigma: float = 3.0
+    max_redraws: int = 20
+    procrustes_iterations: int = 20
+    specificity_samples: int = 100
+    distance_samples: int = 2000
+
+    def __post_init__(self) -> None:
+        if self.samples < 0:
+            raise ValueError(f"samples: must be >= 0, got {self.samples}")
+        if not 0 < self.variance <= 1:
+            raise ValueError(f"variance: must be in (0, 1], got {self.variance}")
+        if not self.truncate_sigma > 0:
+            raise ValueError(f"truncate_sigma: must be > 0, got {self.truncate_sigma}")
+        if self.max_redraws < 0:
+            raise ValueError(f"max_redraws: must be >= 0, got {self.max_redraws}")
+        if self.procrustes_iterations < 1:
+            raise ValueError(f"procrustes_iterations: must be >= 1, got {self.procrustes_iterations}")
+        if self.specificity_samples < 1:
+            raise ValueError(f"specificity_samples: must be >= 1, got {self.specificity_samples}")
+        if self.distance_samples < 100:
+            raise ValueError(f"distance_samples: must be >= 100, got {self.distance_samples}")
+
+
+@dataclass(frozen=True)
+class ShapeModel:
+    """A PCA shape model in the frame of its Procrustes mean (mm).
+
+    mean : (n, 3) float, modes : (k, n, 3) float (orthonormal as vectors of R^3n),
+    variances : (k,) float mm^2 (eigenvalues, descending), faces : (m, 3) int,
+    total_variance : float mm^2, the variance of all modes including those dropped,
+    labels : (n,) uint8 canonical structure id per vertex (the template's; 0 if unknown).
+    """
+
+    mean: np.ndarray
+    modes: np.ndarray
+    variances: np.ndarray
+    faces: np.ndarray
+    total_variance: float
+    labels: np.ndarray | None = None
+
+    def shape(self, coeffs: np.ndarray) -> np.ndarray:
+        """Vertices (n, 3) of the shape mean + sum_i coeffs[i] modes[i], coeffs : (j,) with j <= k."""
+        coeffs = np.asarray(coeffs, dtype=np.float64)
+        return self.mean + np.tensordot(coeffs, self.modes[: len(coeffs)], axes=1)
+
+
+def rigid_fit(moving: np.ndarray, fixed: np.ndarray) -> np.ndarray:
+    """`moving` (n, 3) rotated and translated to best match `fixed` (n, 3) in least squares (Kabsch, no scale)."""
+    _, aligned, _ = trimesh.registration.procrustes(moving, fixed, reflection=False, scale=False)
+    return aligned
+
+
+def procrustes_align(shapes: np.ndarray, iterations: int = 20, tol_mm: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised Procrustes alignment by rotation and translation (scale kept).
+
+    shapes : (s, n, 3) float  ->  aligned (s, n, 3), mean (n, 3).
+    The mean starts as the first shape centred at the origin and is updated until it
+    moves less than tol_mm (root-mean-square over vertices) or `iterations` is reached;
+    its orientation stays that of the first shape.
+    """
+    shapes = np.asarray(shapes, dtype=np.float64)
+    mean = shapes[0] - shapes[0].mean(axis=0)
+    aligned = shapes
+    for _ in range(iterations):
+        aligned = np.stack([rigid_fit(shape, mean) for shape in shapes])
+        new_mean = rigid_fit(aligned.mean(axis=0), mean)
+        moved = np.sqrt(np.mean(np.sum((new_mean - mean) ** 2, axis=1)))
+        mean = new_mean
+        if moved < tol_mm:
+            break
+    return aligned, mean
+
+
+def _pca(aligned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean (n, 3), modes (r, n, 3) and variances (r,) of aligned shapes (s, n, 3), for the
+    r <= s - 1 modes of non-zero variance (the others are arbitrary directions outside the data)."""
+    count, n_verts, _ = aligned.shape
+    mean = aligned.mean(axis=0)
+    centred = (aligned - mean).reshape(count, 3 * n_verts)
+    _, singular, vt = np.linalg.svd(centred, full_matrices=False)
+    variances = singular**2 / max(count - 1, 1)
+    rank = int(np.count_nonzero(variances > variances.sum() * 1e-12))
+    return mean, vt[:rank].reshape(rank, n_verts, 3), variances[:rank]
+
+
+def build_model(
+    shapes: np.ndarray, faces: np.ndarray, variance: float, procrustes_iterations: int = 20, labels: np.ndarray | None = None
+) -> ShapeModel:
+    """Shape model of corresponding shapes : (s, n, 3) float with faces : (m, 3) int, labels : (n,) uint8.
+
+    Keeps the fewest leading modes whose cumulative variance reaches `variance` of the total.
+    """
+    shapes = np.asarray(shapes, dtype=np.float64)
+    if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 2:
+        raise ValueError(f"shapes: need (s >= 2, n, 3), got {shapes.shape}")
+    aligned, _ = procrustes_align(shapes, procrustes_iterations)
+    mean, modes, variances = _pca(aligned)
+    total = float(variances.sum())
+    if not len(variances):
+        raise MeshError(f"shape model: the {len(shapes)} aligned shapes are identical (total variance {total})")
+    # The tolerance keeps variance=1.0 from depending on the last bits of a cumulative sum.
+    kept = min(int(np.searchsorted(np.cumsum(variances) / total, variance - 1e-12) + 1), len(variances))
+    return ShapeModel(
+        mean=mean,
+        modes=modes[:kept],
+        variances=variances[:kept],
+        faces=np.asarray(faces, dtype=np.int64),
+        total_variance=total,
+        labels=np.zeros(shapes.shape[1], np.uint8) if labels is None else np.asarray(labels, np.uint8),
+    )
+
+
+def save_model(path: str | Path, model: ShapeModel) -> None:
+    """Write the model as npz (plain arrays, loads with allow_pickle=False) via a temporary name."""
+    with atomic_path(path) as tmp:
+        np.savez(
+            tmp,
+            mean=model.mean,
+            modes=model.modes,
+            variances=model.variances,
+            faces=model.faces,
+            total_variance=np.float64(model.total_variance),
+            labels=model.labels,
+        )
+
+
+def load_model(path: str | Path) -> ShapeModel:
+    """The model written by save_model."""
+    with np.load(path, allow_pickle=False) as data:
+        return ShapeModel(
+            mean=data["mean"],
+            modes=data["modes"],
+            variances=data["variances"],
+            faces=data["faces"],
+            total_variance=float(data["total_variance"]),
+            labels=data["labels"],
+        )
+
+
+def sample(model: ShapeModel, rng: np.random.Generator, truncate_sigma: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """One random shape: coeffs (k,) with b_i ~ N(0, lambda_i) truncated at +-truncate_sigma
+    standard deviations (by redrawing the out-of-range entries), and its vertices (n, 3)."""
+    standard = rng.standard_normal(len(model.variances))
+    outside = np.abs(standard) > truncate_sigma
+    while outside.any():
+        standard[outside] = rng.standard_normal(int(outside.sum()))
+        outside = np.abs(standard) > truncate_sigma
+    coeffs = standard * np.sqrt(model.variances)
+    return coeffs, model.shape(coeffs)
+
+
+def sample_valid(
+    model: ShapeModel, rng: np.random.Generator, params: SSMParams
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """A random shape whose mesh does not self-intersect: coeffs (k,), vertices (n, 3), redraws made.
+
+    Raises MeshError when params.max_redraws redraws all self-intersect.
+    """
+    counts = []
+    for redraws in range(params.max_redraws + 1):
+        coeffs, verts = sample(model, rng, params.truncate_sigma)
+        count = int(self_intersecting_faces(verts, model.faces).sum())
+        if count == 0:
+            return coeffs, verts, redraws
+        counts.append(count)
+    raise MeshError(
+        f"shape sample: all {params.max_redraws + 1} draws self-intersect "
+        f"({min(counts)} to {max(counts)} self-intersecting faces)"
+    )
+
+
+def compactness(model: ShapeModel) -> np.ndarray:
+    """(k,) cumulative fraction of the total variance explained by the first 1..k modes."""
+    return np.cumsum(model.variances) / model.total_variance
+
+
+def generalisation(shapes: np.ndarray, max_modes: int, procrustes_iterations: int = 20) -> np.ndarray:
+    """(max_modes,) leave-one-out reconstruction error (mm) with 1..max_modes modes.
+
+    For each shape, a model of the other shapes (all their modes) reconstructs it after a
+    rigid fit to that model's mean; the error is the mean vertex distance between the
+    aligned shape and its projection on the first j modes, averaged over shapes.
+    A leave-one-out model has at most s - 2 modes; beyond them the error stays at its last value.
+    """
+    shapes = np.asarray(shapes, dtype=np.float64)
+    errors = np.zeros((len(shapes), max_modes))
+    for left_out in range(len(shapes)):
+        rest = np.delete(shapes, left_out, axis=0)
+        aligned, _ = procrustes_align(rest, procrustes_iterations)
+        mean, modes, _ = _pca(aligned)
+        target = rigid_fit(shapes[left_out], mean)
+        flat_modes = modes.reshape(len(modes), -1)
+        coeffs = flat_modes @ (target - mean).ravel()
+        for j in range(max_modes):
+            used = min(j + 1, len(flat_modes))
+            recon = mean + (coeffs[:used] @ flat_modes[:used]).reshape(mean.shape)
+            errors[left_out, j] = np.linalg.norm(recon - target, axis=1).mean()
+    return errors.mean(axis=0)
+
+
+def specificity(
+    model: ShapeModel, shapes: np.ndarray, rng: np.random.Generator, params: SSMParams
+) -> tuple[float, float]:
+    """Mean and standard deviation (mm) over params.specificity_samples random model shapes of
+    the two-sided mean surface distance to the nearest training shape.
+
+    The nearest training shape (rigidly fitted to the model mean) is the one with the smallest
+    mean corresponding-vertex distance; the surface distance to it uses
+    params.distance_samples area-weighted samples per side.
+    """
+    training = np.stack([rigid_fit(shape, model.mean) for shape in np.asarray(shapes, dtype=np.float64)])
+    distances = np.empty(params.specificity_samples)
+    for i in range(params.specificity_samples):
+        _, verts = sample(model, rng, params.truncate_sigma)
+        nearest = np.argmin(np.linalg.norm(training - verts, axis=2).mean(axis=1))
+        to_training, to_sample = surface_distances(
+            verts, model.faces, training[nearest], model.faces, params.distance_samples, rng
+        )
+        distances[i] = 0.5 * (to_training.mean() + to_sample.mean())
+    return float(distances.mean()), float(distances.std())
+
+
+def quality_report(model: ShapeModel, shapes: np.ndarray, rng: np.random.Generator, params: SSMParams) -> dict:
+    """The standard SSM quality measures as JSON-ready values (mm, per number of modes)."""
+    specificity_mean, specificity_std = specificity(model, shapes, rng, params)
+    return {
+        "modes": int(len(model.variances)),
+        "variances_mm2": model.variances.tolist(),
+        "compactness": compactness(model).tolist(),
+        "generalisation_mm": generalisation(shapes, len(model.variances), params.procrustes_iterations).tolist(),
+        "specificity_mm": specificity_mean,
+        "specificity_std_mm": specificity_std,
+    }

@@ -1,0 +1,152 @@
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from meshsar_builder.errors import MeshError
+from meshsar_builder.registration import (
+    RegistrationParams,
+    accept,
+    choose_template,
+    flipped_faces,
+    register,
+    surface_distances,
+)
+from meshsar_builder.remesh import RemeshParams, remesh
+
+PARAMS = RegistrationParams(distance_samples=5000)
+
+
+def unit_sphere():
+    return trimesh.creation.icosphere(subdivisions=5)
+
+
+def blob(points: np.ndarray) -> np.ndarray:
+    """A smooth asymmetric closed surface (no rotational symmetry, so a fit has one answer)."""
+    return points * (30.0, 22.0, 18.0) + np.c_[
+        3 * np.sin(2 * points[:, 1]), 2 * np.cos(3 * points[:, 2]), 4 * np.sin(2 * points[:, 0] + 1)
+    ]
+
+
+@pytest.fixture(scope="module")
+def template():
+    sphere = unit_sphere()
+    return remesh(blob(sphere.vertices), sphere.faces, RemeshParams(edge_mm=2.5))
+
+
+def test_similarity_moved_retessellated_template_is_registered_back(template):
+    verts, faces = template
+    rotation = Rotation.from_euler("xyz", [40, -25, 70], degrees=True).as_matrix()
+    scale, shift = 1.2, np.array([10.0, -5.0, 3.0])
+    moved = scale * verts @ rotation.T + shift
+    subject_verts, subject_faces = remesh(moved, faces, RemeshParams(edge_mm=2.0))
+    assert len(subject_verts) != len(verts)
+
+    # Labels: the side of a plane through the template, carried along by the known motion.
+    template_labels = (verts[:, 0] > 5.0).astype(np.uint8)
+    subject_labels = (((subject_verts - shift) @ rotation / scale)[:, 0] > 5.0).astype(np.uint8)
+    fitted, report = register(
+        verts, faces, subject_verts, subject_faces, PARAMS, np.random.default_rng(0), template_labels, subject_labels
+    )
+    assert fitted.shape == verts.shape
+    assert np.linalg.norm(fitted - moved, axis=1).mean() < 0.5
+    assert report["prealign_scale"] == pytest.approx(scale, rel=0.01)
+    assert report["label_agreement"] > 0.97
+    accept(report, PARAMS)
+
+
+def test_smoothly_deformed_ellipsoid_is_fitted_closely_without_flips():
+    sphere = unit_sphere()
+    ellipsoid = sphere.vertices * (30.0, 22.0, 18.0)
+
+    def field(p):
+        return p + np.c_[3 * np.sin(p[:, 1] / 12), 2 * np.cos(p[:, 2] / 9), 2.5 * np.sin(p[:, 0] / 10)]
+
+    template_verts, template_faces = remesh(ellipsoid, sphere.faces, RemeshParams(edge_mm=2.5))
+    subject_verts, subject_faces = remesh(field(ellipsoid), sphere.faces, RemeshParams(edge_mm=2.0))
+    fitted, report = register(
+        template_verts, template_faces, subject_verts, subject_faces, PARAMS, np.random.default_rng(1)
+    )
+    assert report["mean_mm"] < 0.2
+    assert report["flipped_faces"] == 0
+    assert report["self_intersections"] == 0
+    assert "label_agreement" not in report
+    # The report's distance agrees with an independent measurement of the same fit.
+    to_subject, to_fit = surface_distances(
+        fitted, template_faces, subject_verts, subject_faces, 20000, np.random.default_rng(9)
+    )
+    assert 0.5 * (to_subject.mean() + to_fit.mean()) == pytest.approx(report["mean_mm"], abs=0.02)
+
+
+def test_torus_subject_is_refused_for_its_topology(template):
+    torus = trimesh.creation.torus(30.0, 10.0)
+    with pytest.raises(MeshError, match="registration subject: Euler characteristic 0"):
+        register(*template, torus.vertices, torus.faces, PARAMS, np.random.default_rng(0))
+
+
+def test_wildly_different_shape_is_rejected_with_reasons():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=30.0)
+    template_verts, template_faces = remesh(sphere.vertices, sphere.faces, RemeshParams(edge_mm=4.0))
+    # A long thin bar: genus 0, but a sphere cannot follow it under the stiffness schedule.
+    bar = trimesh.creation.capsule(height=150.0, radius=6.0, count=[32, 32])
+    subject_verts, subject_faces = remesh(bar.vertices, bar.faces, RemeshParams(edge_mm=4.0))
+    params = RegistrationParams(distance_samples=2000, step_iterations=3)
+    _, report = register(
+        template_verts, template_faces, subject_verts, subject_faces, params, np.random.default_rng(0)
+    )
+    with pytest.raises(MeshError, match="registration rejected: two-sided mean surface distance .* mm > 0.5 mm"):
+        accept(report, params)
+
+
+@pytest.mark.parametrize(
+    "change, reason",
+    [
+        ({"mean_mm": 0.8}, "two-sided mean surface distance 0.800 mm > 0.5 mm"),
+        ({"p95_mm": 2.0}, "95th-percentile surface distance 2.000 mm > 1.5 mm"),
+        ({"flipped_faces": 3}, "3 flipped faces"),
+        ({"self_intersections": 4}, "4 self-intersecting faces"),
+    ],
+)
+def test_accept_names_each_broken_threshold(change, reason):
+    report = {"mean_mm": 0.1, "p95_mm": 0.3, "flipped_faces": 0, "self_intersections": 0}
+    accept(report, PARAMS)
+    with pytest.raises(MeshError, match=reason):
+        accept({**report, **change}, PARAMS)
+
+
+def test_flipped_faces_detects_a_reversed_triangle_only():
+    before = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
+    faces = np.array([[0, 1, 2], [1, 3, 2]])
+    after = before.copy()
+    after[2] = (0.0, -1.0, 0.5)  # vertex 2 crosses edge 0-1: face 0 turns over
+    after[3] = (1.0, 1.0, 0.5)
+    np.testing.assert_array_equal(flipped_faces(before, after, faces), [True, False])
+
+
+def test_choose_template_takes_the_median_volume_deterministically():
+    assert choose_template({"a": 3.0, "b": 1.0, "c": 2.0}) == "c"
+    assert choose_template({"d": 4.0, "c": 3.0, "b": 2.0, "a": 1.0}) == "b"
+    assert choose_template({"y": 2.0, "x": 2.0, "z": 1.0}) == "x"
+    assert choose_template({"a": 3.0, "b": 1.0}, "a") == "a"
+    with pytest.raises(ValueError, match="template: subject 'q' is not among the 2 subjects"):
+        choose_template({"a": 3.0, "b": 1.0}, "q")
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("template", ""),
+        ("template_vertices", 10),
+        ("max_mean_mm", 0.0),
+        ("max_p95_mm", -1.0),
+        ("icp_points", 1),
+        ("stiffness", ()),
+        ("normal_weight", (0.5,)),
+        ("step_iterations", 0),
+        ("match_distance_mm", 0.0),
+        ("distance_samples", 5),
+    ],
+)
+def test_params_reject_bad_values_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=f"^{field}: "):
+        RegistrationParams(**{field: value})

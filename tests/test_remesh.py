@@ -1,0 +1,133 @@
+import numpy as np
+import pytest
+import trimesh
+from scipy.special import ellipeinc, ellipkinc
+
+from meshsar_builder.errors import MeshError
+from meshsar_builder.remesh import (
+    RemeshParams,
+    mesh_checks,
+    remesh,
+    require_valid,
+    self_intersecting_faces,
+    simplify,
+)
+
+SEMI_AXES = (30.0, 22.0, 18.0)
+
+
+def ellipsoid_area(a: float, b: float, c: float) -> float:
+    """Exact area of an ellipsoid a >= b >= c (Legendre's form with incomplete elliptic integrals)."""
+    phi = np.arccos(c / a)
+    m = a**2 * (b**2 - c**2) / (b**2 * (a**2 - c**2))
+    s = np.sin(phi)
+    return 2 * np.pi * c**2 + 2 * np.pi * a * b / s * (ellipeinc(phi, m) * s**2 + ellipkinc(phi, m) * np.cos(phi) ** 2)
+
+
+@pytest.fixture(scope="module")
+def ellipsoid():
+    sphere = trimesh.creation.icosphere(subdivisions=5)
+    return sphere.vertices * SEMI_AXES, sphere.faces
+
+
+@pytest.fixture(scope="module")
+def remeshed_ellipsoid(ellipsoid):
+    return remesh(*ellipsoid, RemeshParams(edge_mm=2.5))
+
+
+def test_ellipsoid_area_formula_reduces_to_sphere():
+    assert ellipsoid_area(10.0, 10.0 - 1e-9, 10.0 - 2e-9) == pytest.approx(4 * np.pi * 100, rel=1e-6)
+
+
+def test_remeshed_ellipsoid_keeps_area_and_volume(remeshed_ellipsoid):
+    checks = mesh_checks(*remeshed_ellipsoid)
+    a, b, c = SEMI_AXES
+    assert checks["volume_mm3"] == pytest.approx(4 / 3 * np.pi * a * b * c, rel=0.015)
+    assert checks["area_mm2"] == pytest.approx(ellipsoid_area(a, b, c), rel=0.015)
+
+
+def test_remeshed_ellipsoid_is_closed_genus0_with_target_edges(remeshed_ellipsoid):
+    verts, faces = remeshed_ellipsoid
+    checks = mesh_checks(verts, faces)
+    assert checks["watertight"] and checks["winding_consistent"]
+    assert checks["euler"] == 2 and checks["components"] == 1
+    assert checks["self_intersections"] == 0
+    edges = trimesh.Trimesh(verts, faces, process=False).edges_unique_length
+    assert edges.mean() == pytest.approx(2.5, rel=0.15)
+    assert faces.dtype == np.int64 and verts.dtype == np.float64
+
+
+def test_sphere_remeshed_with_inverted_faces_comes_out_outward():
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
+    verts, faces = remesh(sphere.vertices, sphere.faces[:, ::-1], RemeshParams(edge_mm=2.5))
+    checks = mesh_checks(verts, faces)
+    assert checks["volume_mm3"] == pytest.approx(4 / 3 * np.pi * 20.0**3, rel=0.02)
+    assert checks["area_mm2"] == pytest.approx(4 * np.pi * 20.0**2, rel=0.02)
+
+
+def pushed_through_sphere():
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    verts = sphere.vertices.copy()
+    verts[np.argmax(verts[:, 2])] = (0.0, 0.0, -25.0)  # the north pole pierces the south side
+    return verts, sphere.faces
+
+
+def test_self_intersecting_faces_flags_a_pushed_through_vertex_only():
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    assert not self_intersecting_faces(sphere.vertices, sphere.faces).any()
+    verts, faces = pushed_through_sphere()
+    flagged = self_intersecting_faces(verts, faces)
+    assert flagged.shape == (len(faces),)
+    pole = np.argmin(verts[:, 2])
+    spikes = (faces == pole).any(axis=1)
+    assert flagged[spikes].any()
+    assert 0 < flagged.sum() < 0.05 * len(faces)
+
+
+def test_remesh_result_of_a_broken_surface_is_valid_or_refused():
+    try:
+        verts, faces = remesh(*pushed_through_sphere(), RemeshParams())
+    except MeshError as error:
+        assert "remeshed surface" in str(error)
+    else:
+        require_valid(verts, faces, "repaired surface")
+
+
+def test_torus_is_refused_with_its_euler_characteristic():
+    torus = trimesh.creation.torus(30.0, 10.0)
+    assert mesh_checks(torus.vertices, torus.faces)["euler"] == 0
+    with pytest.raises(MeshError, match="Euler characteristic 0 instead of 2"):
+        require_valid(torus.vertices, torus.faces, "subject")
+    with pytest.raises(MeshError, match="Euler characteristic 0"):
+        remesh(torus.vertices, torus.faces, RemeshParams(edge_mm=3.0))
+
+
+def test_simplify_reaches_the_vertex_count_and_keeps_the_shape(remeshed_ellipsoid):
+    verts, faces = simplify(*remeshed_ellipsoid, 500)
+    checks = require_valid(verts, faces, "simplified")
+    assert checks["n_vertices"] == 500
+    assert checks["volume_mm3"] == pytest.approx(mesh_checks(*remeshed_ellipsoid)["volume_mm3"], rel=0.02)
+
+
+def test_simplify_leaves_small_surfaces_unchanged(remeshed_ellipsoid):
+    verts, faces = simplify(*remeshed_ellipsoid, 10**6)
+    np.testing.assert_array_equal(verts, remeshed_ellipsoid[0])
+    np.testing.assert_array_equal(faces, remeshed_ellipsoid[1])
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("edge_mm", 0.0),
+        ("taubin_steps", -1),
+        ("taubin_lambda", 1.5),
+        ("taubin_mu", -0.4),
+        ("iterations", 0),
+        ("max_surface_mm", -1.0),
+        ("feature_deg", 0.0),
+        ("repair_passes", -1),
+    ],
+)
+def test_params_reject_bad_values_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=f"^{field}: .*got {value}"):
+        RemeshParams(**{field: value})

@@ -1,0 +1,176 @@
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from meshsar_builder.errors import MeshError
+from meshsar_builder.ssm import (
+    ShapeModel,
+    SSMParams,
+    build_model,
+    compactness,
+    generalisation,
+    load_model,
+    procrustes_align,
+    quality_report,
+    sample,
+    sample_valid,
+    save_model,
+    specificity,
+)
+
+TRUE_VARIANCES = np.array([16.0, 4.0, 1.0])  # mm^2
+N_SHAPES = 30
+
+
+def base_mesh():
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    return sphere.vertices * (30.0, 22.0, 18.0), sphere.faces
+
+
+def true_modes(base: np.ndarray) -> np.ndarray:
+    """Three smooth orthonormal modes (3, n, 3), orthogonal to translations and rotations of base."""
+    x, y, z = (base / 30.0).T
+    zeros = np.zeros_like(x)
+    fields = [np.c_[zeros, zeros, x**2], np.c_[y * z, zeros, zeros], np.c_[zeros, np.sin(3 * x), zeros]]
+    centred = base - base.mean(axis=0)
+    rigid = [np.tile(np.eye(3)[i], (len(base), 1)) for i in range(3)]
+    rigid += [np.cross(np.eye(3)[i], centred) for i in range(3)]
+    basis, _ = np.linalg.qr(np.stack([f.ravel() for f in rigid + fields], axis=1))
+    return basis[:, 6:].T.reshape(3, len(base), 3)
+
+
+@pytest.fixture(scope="module")
+def training():
+    """Shapes with exactly the true mode variances, each then moved rigidly (shape 0 stays put)."""
+    base, faces = base_mesh()
+    modes = true_modes(base)
+    rng = np.random.default_rng(3)
+    coeffs = rng.standard_normal((N_SHAPES, 3))
+    coeffs -= coeffs.mean(axis=0)
+    orthonormal, _ = np.linalg.qr(coeffs)
+    coeffs = orthonormal * np.sqrt((N_SHAPES - 1) * TRUE_VARIANCES)
+    shapes = base + np.tensordot(coeffs, modes, axes=1)
+    rotations = Rotation.random(N_SHAPES, random_state=4).as_matrix()
+    rotations[0] = np.eye(3)
+    shifts = rng.normal(0.0, 20.0, (N_SHAPES, 3))
+    shifts[0] = 0.0
+    moved = np.einsum("sij,snj->sni", rotations, shapes) + shifts[:, None, :]
+    return moved, faces, modes
+
+
+@pytest.fixture(scope="module")
+def model(training):
+    shapes, faces, _ = training
+    return build_model(shapes, faces, variance=0.98)
+
+
+def test_known_modes_and_variances_are_recovered(model, training):
+    _, _, modes = training
+    assert len(model.variances) == 3
+    np.testing.assert_allclose(model.variances, TRUE_VARIANCES, rtol=0.05)
+    for found, truth in zip(model.modes, modes):
+        assert abs(np.dot(found.ravel(), truth.ravel())) > 0.99
+    assert compactness(model)[-1] == pytest.approx(1.0, abs=1e-3)
+    assert np.all(np.diff(compactness(model)) > 0)
+
+
+def test_variance_fraction_chooses_the_mode_count(training):
+    shapes, faces, _ = training
+    fractions = np.cumsum(TRUE_VARIANCES) / TRUE_VARIANCES.sum()  # 0.76, 0.95, 1.0
+    assert len(build_model(shapes, faces, variance=fractions[0] - 0.01).variances) == 1
+    assert len(build_model(shapes, faces, variance=fractions[1] - 0.01).variances) == 2
+
+
+def test_model_round_trips_through_npz_without_pickles(model, tmp_path):
+    path = tmp_path / "model.npz"
+    save_model(path, model)
+    with np.load(path, allow_pickle=False) as data:
+        assert set(data.files) == {"mean", "modes", "variances", "faces", "total_variance", "labels"}
+    loaded = load_model(path)
+    for name in ("mean", "modes", "variances", "faces", "labels"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(model, name))
+    assert loaded.total_variance == model.total_variance
+    assert list(tmp_path.iterdir()) == [path]
+
+
+def test_samples_are_seeded_and_truncated_at_three_sigma(model):
+    coeffs_a, verts_a = sample(model, np.random.default_rng(11))
+    coeffs_b, verts_b = sample(model, np.random.default_rng(11))
+    assert coeffs_a.tobytes() == coeffs_b.tobytes() and verts_a.tobytes() == verts_b.tobytes()
+    assert sample(model, np.random.default_rng(12))[0].tobytes() != coeffs_a.tobytes()
+    rng = np.random.default_rng(5)
+    standardised = np.stack([sample(model, rng)[0] for _ in range(2000)]) / np.sqrt(model.variances)
+    assert np.abs(standardised).max() <= 3.0
+    # The standard deviation of N(0, 1) truncated at +-3 is 0.9866.
+    np.testing.assert_allclose(standardised.std(axis=0), 0.9866, rtol=0.05)
+    np.testing.assert_allclose(verts_a, model.mean + np.tensordot(coeffs_a, model.modes, axes=1))
+
+
+def test_sample_valid_accepts_clean_shapes_and_gives_up_on_broken_ones(model):
+    params = SSMParams(max_redraws=2)
+    coeffs, verts, redraws = sample_valid(model, np.random.default_rng(0), params)
+    assert redraws == 0 and verts.shape == model.mean.shape
+    pierced = model.mean.copy()
+    pierced[np.argmax(pierced[:, 2])] = (0.0, 0.0, -25.0)
+    broken = ShapeModel(pierced, model.modes * 1e-3, model.variances, model.faces, model.total_variance)
+    with pytest.raises(MeshError, match="all 3 draws self-intersect"):
+        sample_valid(broken, np.random.default_rng(0), params)
+
+
+@settings(deadline=None, max_examples=10)
+@given(seed=st.integers(0, 2**32 - 1), shift=st.tuples(*[st.floats(-100, 100)] * 3))
+def test_procrustes_removes_rotation_and_translation_and_keeps_scale(seed, shift):
+    base, _ = base_mesh()
+    rotation = Rotation.random(random_state=seed).as_matrix()
+    moved = base @ rotation.T + np.array(shift)
+    aligned, mean = procrustes_align(np.stack([base, moved]))
+    centred = base - base.mean(axis=0)
+    np.testing.assert_allclose(aligned[1], aligned[0], atol=1e-8)
+    np.testing.assert_allclose(mean, centred, atol=1e-8)
+    assert np.linalg.norm(aligned[1]) == pytest.approx(np.linalg.norm(centred), rel=1e-12)
+
+
+def test_procrustes_keeps_size_differences():
+    base, _ = base_mesh()
+    aligned, _ = procrustes_align(np.stack([base, 1.5 * base @ Rotation.from_euler("z", 30, degrees=True).as_matrix().T]))
+    sizes = np.linalg.norm(aligned - aligned.mean(axis=1, keepdims=True), axis=(1, 2))
+    assert sizes[1] / sizes[0] == pytest.approx(1.5, rel=1e-9)
+
+
+def test_generalisation_drops_to_zero_with_the_true_mode_count(training):
+    shapes, _, _ = training
+    errors = generalisation(shapes[:12], max_modes=4)
+    assert errors.shape == (4,)
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 0.02 and errors[3] == pytest.approx(errors[2], abs=1e-6)
+
+
+def test_specificity_of_model_samples_is_small_and_reported(model, training):
+    shapes, _, _ = training
+    params = SSMParams(specificity_samples=4, distance_samples=500)
+    mean_mm, std_mm = specificity(model, shapes, np.random.default_rng(0), params)
+    # Samples lie in the training span; the nearest of 30 training shapes is a few mm off at most.
+    assert 0.0 < mean_mm < 3.0 and std_mm >= 0.0
+    report = quality_report(model, shapes[:10], np.random.default_rng(0), params)
+    assert report["modes"] == 3 and len(report["generalisation_mm"]) == 3 and len(report["compactness"]) == 3
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("samples", -1),
+        ("variance", 0.0),
+        ("variance", 1.5),
+        ("truncate_sigma", 0.0),
+        ("max_redraws", -1),
+        ("procrustes_iterations", 0),
+        ("specificity_samples", 0),
+        ("distance_samples", 10),
+    ],
+)
+def test_params_reject_bad_values_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=f"^{field}: .*got {value}"):
+        SSMParams(**{field: value})
