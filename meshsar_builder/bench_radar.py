@@ -1,0 +1,139 @@
+"""Radar benchmark: seconds per view on one core, production echo vs direct, Embree ray rate.
+
+run() measures in a child process started with OMP/OPENBLAS/MKL thread counts of 1
+(they are read once, when numpy loads) and pinned to one CPU with
+sched_setaffinity, so BLAS, FFT and Embree all run on one core. Every timing is
+the minimum of a few repeats: the machines this runs on are shared.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+TARGET_SPEEDUP = 100.0
+TARGET_ERROR = 1e-4
+TARGET_VIEW_SECONDS = 1.5
+DIRECT_ANTENNAS = 48  # the direct sum is timed on this many antennas and scaled to the aperture
+REPEATS = 3
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+
+
+def default_mesh() -> tuple[np.ndarray, np.ndarray]:
+    """A heart-sized closed mesh: ellipsoid 100 x 80 x 120 mm, 6,000 faces."""
+    import trimesh
+
+    mesh = trimesh.creation.uv_sphere(radius=1.0, count=[32, 50])
+    return mesh.vertices * np.array([50.0, 40.0, 60.0]), mesh.faces
+
+
+def _best(function, repeats=REPEATS):
+    """(minimum seconds, last result) over repeats."""
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = function()
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
+    """The benchmark numbers at default parameters (call on one core; run() arranges that)."""
+    from . import radar as R
+    from .sar import ImageParams, view_images
+
+    radar, images = R.RadarParams(), ImageParams()
+    freqs, (x_mm, y_mm) = R.frequencies(radar), R.aperture_axes(radar)
+    _, normals, areas = R.facet_geometry(verts, faces)
+    points = R.scatterer_points(verts, faces, "centroid", None)
+    intersector = R.embree_intersector(verts, faces)
+    views, ray_count, ray_seconds = [], 0, 0.0
+    for view in radar.views:
+        probes = R.probe_points(radar, view)
+        t_vis, (vis, rays) = _best(lambda: R.visibility(verts, faces, probes, intersector))
+        seen = vis > 0
+        positions = R.aperture_positions(radar, view)
+        args = (points[seen], normals[seen], (vis * areas)[seen])
+        t_echo, signal = _best(lambda: R.echo(*args, positions, freqs, radar))
+        signal = signal.reshape(*radar.aperture, radar.n_samples)
+        t_img, _ = _best(lambda: view_images(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
+        subset = np.linspace(0, len(positions) - 1, DIRECT_ANTENNAS).round().astype(int)
+        t_direct, direct = _best(lambda: R.echo(*args, positions[subset], freqs, radar, method="direct"), 1)
+        blocked = signal.reshape(len(positions), -1)[subset]
+        error = float(np.linalg.norm(blocked - direct) / np.linalg.norm(direct))
+        direct_scaled = t_direct * len(positions) / len(subset)
+        # Embree alone: the same rays as the visibility pass, without the numpy around them.
+        centres = R.facet_geometry(verts, faces)[0]
+        to_probe = probes[None] - centres[:, None]
+        facet, probe = np.nonzero(np.einsum("fc,fpc->fp", normals, to_probe) > 0)
+        directions = to_probe[facet, probe] / np.linalg.norm(to_probe[facet, probe], axis=1, keepdims=True)
+        origins = centres[facet] + R.RAY_OFFSET_MM * normals[facet]
+        t_rays, _ = _best(lambda: intersector.intersects_any(origins, directions))
+        ray_count, ray_seconds = ray_count + rays, ray_seconds + t_rays
+        views.append({
+            "view": view,
+            "visible_facets": int(seen.sum()),
+            "antenna_facet_pairs": int(seen.sum()) * len(positions),
+            "seconds_visibility": t_vis,
+            "seconds_echo": t_echo,
+            "seconds_imaging": t_img,
+            "seconds_view": t_vis + t_echo + t_img,
+            "seconds_echo_direct_scaled": direct_scaled,
+            "echo_speedup": direct_scaled / t_echo,
+            "echo_relative_error": error,
+            "direct_antennas": len(subset),
+        })
+    worst_view = max(v["seconds_view"] for v in views)
+    speedup = min(v["echo_speedup"] for v in views)
+    error = max(v["echo_relative_error"] for v in views)
+    return {
+        "mesh_faces": int(len(faces)),
+        "echo_method": radar.echo_method,
+        "threads": "one core: child process with " + ", ".join(f"{name}=1" for name in THREAD_VARIABLES)
+                   + ", pinned with sched_setaffinity",
+        "repeats": REPEATS,
+        "views": views,
+        "embree_rays_per_second": ray_count / ray_seconds,
+        "targets": {
+            "echo_speedup": {"target": TARGET_SPEEDUP, "measured_min": speedup, "met": speedup >= TARGET_SPEEDUP},
+            "echo_relative_error": {"target": TARGET_ERROR, "measured_max": error, "met": error <= TARGET_ERROR},
+            "seconds_per_view": {"target": TARGET_VIEW_SECONDS, "measured_max": worst_view,
+                                 "met": worst_view <= TARGET_VIEW_SECONDS},
+        },
+    }
+
+
+def run(out_dir: Path, verts: np.ndarray | None = None, faces: np.ndarray | None = None) -> dict:
+    """Benchmark the radar on (verts, faces) (default: default_mesh()); writes out_dir/'radar.json'."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if verts is None:
+        verts, faces = default_mesh()
+    mesh_path, result_path = out_dir / "radar-bench-mesh.npz", out_dir / "radar.json"
+    np.savez(mesh_path, verts=np.asarray(verts, dtype=np.float64), faces=np.asarray(faces, dtype=np.int64))
+    env = {**os.environ, **{name: "1" for name in THREAD_VARIABLES}}
+    try:
+        subprocess.run([sys.executable, "-m", __name__, str(mesh_path), str(result_path)], env=env, check=True)
+    finally:
+        mesh_path.unlink(missing_ok=True)
+    return json.loads(result_path.read_text())
+
+
+def _main(mesh_path: str, result_path: str) -> None:
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    with np.load(mesh_path) as mesh:
+        result = measure(mesh["verts"], mesh["faces"])
+    temporary = Path(result_path).with_suffix(".json.tmp")
+    temporary.write_text(json.dumps(result, indent=2) + "\n")
+    temporary.replace(result_path)
+
+
+if __name__ == "__main__":
+    _main(*sys.argv[1:])

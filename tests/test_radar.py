@@ -1,0 +1,243 @@
+"""Radar echo: parameters, views, visibility, echo accuracy, noise and seeding."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from meshsar_builder import radar as R
+from meshsar_builder.sar import ImageParams
+
+SMALL = dict(aperture=(12, 10), step_mm=4.0, n_samples=24, echo_decimation=(3, 2, 2))
+
+
+def small_radar(**overrides):
+    return R.RadarParams(**{**SMALL, **overrides})
+
+
+def ellipsoid(subdivisions=2):
+    mesh = trimesh.creation.icosphere(subdivisions, radius=1.0)
+    return mesh.vertices * np.array([50.0, 40.0, 60.0]), mesh.faces
+
+
+# ------------------------------------------------------------------ parameters and geometry
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("views", ("anterior", "lateral"), "views: unknown view"),
+    ("step_mm", 0.0, "step_mm: must be positive"),
+    ("snr_db", float("nan"), "snr_db"),
+    ("scatterer", "vertex", "scatterer: must be one of"),
+    ("echo_decimation", (5, 5, 100), "echo_decimation: entry 2"),
+    ("aperture", (80,), "aperture: must be 2 integers"),
+    ("kappa", 1.5, "kappa: must lie in [0, 1]"),
+])
+def test_bad_parameters_name_the_field(field, value, words):
+    with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
+        R.RadarParams(**{field: value})
+
+
+def test_parameters_accept_recipe_values():
+    radar = R.RadarParams(z0_mm=300, views=["left"], aperture=[40, 40], snr_db=float("inf"))
+    assert radar.z0_mm == 300.0 and isinstance(radar.z0_mm, float)
+    assert radar.views == ("left",) and radar.aperture == (40, 40)
+
+
+@pytest.mark.parametrize("view", list(R.VIEW_FRAMES))
+def test_view_frames_are_right_handed_and_orthonormal(view):
+    u, v, w = R.view_frame(view)
+    np.testing.assert_allclose(R.view_frame(view) @ R.view_frame(view).T, np.eye(3))
+    np.testing.assert_allclose(np.cross(u, v), w)
+
+
+def test_aperture_is_centred_on_the_view_axis_at_z0_row_major():
+    radar = small_radar()
+    positions = R.aperture_positions(radar, "left")
+    u, v, w = R.view_frame("left")
+    np.testing.assert_allclose(positions.mean(axis=0), radar.z0_mm * w, atol=1e-12)
+    np.testing.assert_allclose(positions @ w, radar.z0_mm)
+    grid = positions.reshape(*radar.aperture, 3)
+    np.testing.assert_allclose((grid[1, 0] - grid[0, 0]) @ u, radar.step_mm)  # first axis runs along u
+    np.testing.assert_allclose((grid[0, 1] - grid[0, 0]) @ v, radar.step_mm)
+
+
+def test_frequencies_follow_the_chirp():
+    radar = R.RadarParams(t0_s=2e-6)
+    f = R.frequencies(radar)
+    assert f[0] == pytest.approx(77e9 + 100e12 * 2e-6)
+    assert f[-1] - f[0] == pytest.approx(100e12 * 63 / 1.6e6)
+    assert len(f) * (f[1] - f[0]) == pytest.approx(4.0e9)
+
+
+def test_decimation_keeps_a_centred_grid():
+    np.testing.assert_array_equal(R.decimation_indices(80, 5), np.arange(2, 80, 5))
+    np.testing.assert_array_equal(R.decimation_indices(64, 2), np.arange(0, 64, 2))
+    grid = R.echo_grid(R.RadarParams())
+    assert grid["frequencies_hz"].shape == (32,)
+    for view, positions in grid["positions_mm"].items():
+        assert positions.shape == (256, 3)
+        np.testing.assert_allclose(positions.mean(axis=0), 300.0 * R.view_frame(view)[2], atol=1e-9)
+
+
+def test_index_metadata_is_plain_json_with_the_contract_keys():
+    meta = R.index_metadata(R.RadarParams(snr_db=math.inf), ImageParams())
+    text = json.dumps(meta, allow_nan=False)
+    assert set(json.loads(text)) >= {"views", "fov_mm", "image_size", "channels", "radar", "echo_grid"}
+    assert set(meta["radar"]) == {"f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
+                                  "z0_mm", "snr_db", "rvp", "p", "kappa", "scatterer", "probes"}
+    assert meta["radar"]["snr_db"] is None
+    assert [v["name"] for v in meta["views"]] == ["anterior", "left", "superior"]
+    assert len(meta["echo_grid"]["positions_mm"]["left"]) == 16 * 16
+
+
+# ------------------------------------------------------------------ visibility
+
+
+def test_intersector_is_embree():
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    verts, faces = ellipsoid(1)
+    assert isinstance(R.embree_intersector(verts, faces), RayMeshIntersector)
+
+
+def test_convex_sphere_is_about_half_visible_and_never_self_occluded():
+    mesh = trimesh.creation.icosphere(3, radius=40.0)
+    radar = R.RadarParams()
+    probes = R.probe_points(radar, "anterior")
+    vis, rays = R.visibility(mesh.vertices, mesh.faces, probes)
+    centres, normals, areas = R.facet_geometry(mesh.vertices, mesh.faces)
+    facing = np.einsum("fc,fpc->fp", normals, probes[None] - centres[:, None]) > 0
+    # Convex: a facet sees every probe it faces.
+    np.testing.assert_array_equal(vis, facing.mean(axis=1))
+    assert rays == facing.sum()
+    # The cap seen from distance D is (1 - r/D) / 2 of the sphere: 0.43 at 40 / 300 mm.
+    fraction = vis @ areas / areas.sum()
+    assert 0.38 < fraction < 0.5
+
+
+def test_facet_behind_a_plate_is_hidden_and_one_beside_it_is_seen():
+    tiny = np.array([[-1.0, 0, -1], [1, 0, -1], [0, 0, 1]])  # normal +y: faces the anterior radar
+    verts = np.concatenate([
+        tiny,
+        tiny + [200.0, 0, 0],
+        [[-30.0, 50, -30], [30, 50, -30], [30, 50, 30], [-30, 50, 30]],  # plate at y = 50
+    ])
+    faces = np.array([[0, 2, 1], [3, 5, 4], [6, 7, 8], [6, 8, 9]])
+    _, normals, _ = R.facet_geometry(verts, faces)
+    assert normals[0] @ [0, 1, 0] > 0.99
+    vis, _ = R.visibility(verts, faces, R.probe_points(R.RadarParams(), "anterior"))
+    assert vis[0] == 0.0
+    assert vis[1] == 1.0
+
+
+# ------------------------------------------------------------------ echo
+
+
+def test_single_scatterer_echo_matches_the_formula():
+    radar = small_radar(kappa=0.2, p=3.0)
+    point, normal = np.array([[5.0, -10.0, 7.0]]), np.array([[0.0, 0.6, 0.8]])
+    positions = R.aperture_positions(radar, "superior")
+    f = R.frequencies(radar)
+    offset = positions - point
+    r = np.linalg.norm(offset, axis=1)
+    cos = offset @ normal[0] / r
+    gain = np.where(cos > 0, 0.8 * cos**3 + 0.2 * cos, 0)
+    tau = 2 * r * 1e-3 / R.SPEED_OF_LIGHT_M_PER_S
+    expected = (2.5 * gain / r**2)[:, None] * np.exp(
+        2j * np.pi * f[None] * tau[:, None] - 1j * np.pi * radar.slope_hz_per_s * tau[:, None] ** 2
+    )
+    for method in R.ECHO_METHODS:
+        got = R.echo(point, normal, [2.5], positions, f, radar, method=method)
+        np.testing.assert_allclose(got, expected, rtol=2e-6, atol=2e-6 * np.abs(expected).max())
+
+
+def relative_error(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+@pytest.mark.parametrize("mesh_name, overrides", [
+    ("icosphere", {}),
+    ("icosphere", {"rvp": False, "t0_s": 3e-6, "n_samples": 50}),
+    ("torus", {"scatterer": "random", "p": 2.5, "kappa": 0.1}),
+    ("box", {"n_samples": 7, "f0_hz": 60e9}),
+])
+def test_blocked_echo_matches_direct(mesh_name, overrides):
+    radar = R.RadarParams(aperture=(16, 16), step_mm=5.0, **overrides)
+    mesh = {
+        "icosphere": lambda: trimesh.creation.icosphere(3, radius=50.0),
+        "torus": lambda: trimesh.creation.torus(major_radius=45.0, minor_radius=15.0),
+        "box": lambda: trimesh.creation.box((90.0, 70.0, 110.0)).subdivide().subdivide(),
+    }[mesh_name]()
+    assert mesh.is_watertight
+    _, normals, areas = R.facet_geometry(mesh.vertices, mesh.faces)
+    points = R.scatterer_points(mesh.vertices, mesh.faces, radar.scatterer, np.random.default_rng(1))
+    vis, _ = R.visibility(mesh.vertices, mesh.faces, R.probe_points(radar, "left"))
+    seen = vis > 0
+    args = (points[seen], normals[seen], (vis * areas)[seen], R.aperture_positions(radar, "left"),
+            R.frequencies(radar), radar)
+    assert relative_error(R.echo(*args, method="blocked"), R.echo(*args, method="direct")) <= 1e-4
+
+
+def test_echo_without_scatterers_is_zero():
+    radar = small_radar()
+    out = R.echo(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), R.aperture_positions(radar, "left"),
+                 R.frequencies(radar), radar)
+    assert out.shape == (120, 24) and not out.any()
+
+
+def test_random_scatterers_lie_inside_their_facets():
+    verts, faces = ellipsoid(2)
+    points = R.scatterer_points(verts, faces, "random", np.random.default_rng(3))
+    tri = verts[faces]
+    bary = trimesh.triangles.points_to_barycentric(tri, points)
+    assert (bary > -1e-9).all()
+    np.testing.assert_allclose(bary.sum(axis=1), 1.0)
+    centres, normals, _ = R.facet_geometry(verts, faces)
+    np.testing.assert_allclose(np.einsum("fc,fc->f", points - centres, normals), 0, atol=1e-9)
+    assert not np.allclose(points, centres)
+
+
+@pytest.mark.parametrize("snr_db", [0.0, 12.0, 30.0])
+def test_noise_has_the_asked_snr(snr_db):
+    rng = np.random.default_rng(5)
+    signal = rng.standard_normal((64, 64)) * np.exp(1j * rng.uniform(0, 7, (64, 64)))
+    noisy, noise_power = R.add_noise(signal, snr_db, np.random.default_rng(6))
+    measured = 10 * np.log10(np.mean(np.abs(signal) ** 2) / np.mean(np.abs(noisy - signal) ** 2))
+    assert abs(measured - snr_db) < 0.5
+    assert noise_power == pytest.approx(np.mean(np.abs(signal) ** 2) / 10 ** (snr_db / 10))
+    assert R.add_noise(signal, math.inf, None)[0] is signal
+
+
+def test_render_sample_is_seeded_and_shaped():
+    verts, faces = ellipsoid(2)
+    radar = small_radar(scatterer="random", views=("anterior", "superior"))
+    images = ImageParams(size=16)
+    first = R.render_sample(verts, faces, radar, images, np.random.default_rng(11))
+    again = R.render_sample(verts, faces, radar, images, np.random.default_rng(11))
+    other = R.render_sample(verts, faces, radar, images, np.random.default_rng(12))
+    assert first["sar"].shape == (2, 2, 16, 16) and first["sar"].dtype == np.float16
+    assert first["echo"].shape == (2, 4, 5, 12) and first["echo"].dtype == np.complex64
+    assert first["sar"].tobytes() == again["sar"].tobytes()
+    assert first["echo"].tobytes() == again["echo"].tobytes()
+    assert first["echo"].tobytes() != other["echo"].tobytes()
+    for stats in first["views"]:
+        assert 0 < stats["visible_facets"] < len(faces)
+        assert stats["noise_power"] == pytest.approx(stats["signal_power"] / 1000)
+    intensity = first["sar"][:, 0].astype(np.float32)
+    assert intensity.max() == 1.0 and intensity.min() >= 0.0
+
+
+def test_decimated_echo_is_the_full_echo_on_the_echo_grid():
+    verts, faces = ellipsoid(1)
+    radar = small_radar(snr_db=math.inf, views=("left",))
+    out = R.render_sample(verts, faces, radar, ImageParams(size=8), np.random.default_rng(0))
+    _, normals, areas = R.facet_geometry(verts, faces)
+    vis, _ = R.visibility(verts, faces, R.probe_points(radar, "left"))
+    grid = R.echo_grid(radar)
+    seen = vis > 0
+    expected = R.echo(R.scatterer_points(verts, faces, "centroid", None)[seen], normals[seen], (vis * areas)[seen],
+                      grid["positions_mm"]["left"], grid["frequencies_hz"], radar, method="direct")
+    np.testing.assert_allclose(out["echo"][0].reshape(expected.shape), expected, rtol=0,
+                               atol=1e-5 * np.abs(expected).max())
