@@ -141,3 +141,12 @@ def nearest_labels(verts: np.ndarray, labels: np.ndarray, mask: np.ndarray, affi
     centres = idx @ affine[:3, :3].T + affine[:3, 3]
     _, nearest = cKDTree(centres).query(verts)
     return labels[tuple(idx[nearest].T)].astype(np.uint8)
+
+
+def transfer_labels(src_verts: np.ndarray, src_labels: np.ndarray, dst_verts: np.ndarray) -> np.ndarray:
+    """Label of the nearest source vertex for each destination vertex.
+
+    src_verts : (n, 3), src_labels : (n,) uint8, dst_verts : (k, 3) -> (k,) uint8
+    """
+    _, nearest = cKDTree(src_verts).query(dst_verts)
+    return np.asarray(src_labels, dtype=np.uint8)[nearest]

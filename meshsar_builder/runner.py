@@ -28,6 +28,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Callable
 
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from . import __version__
@@ -128,7 +129,11 @@ def run_item(ctx: Context, stage: Stage, item: Item) -> tuple[dict | None, dict 
     t0 = time.perf_counter()
     try:
         inputs = _input_digests(item)
-        result = stage.run(ctx, item) or {}
+        # One BLAS/OpenMP thread per item: threaded reductions sum in a different order
+        # on another core count, and outputs must not depend on the machine or worker count.
+        # Parallelism comes from running items side by side instead.
+        with threadpool_limits(limits=1):
+            result = stage.run(ctx, item) or {}
         stage_dir = ctx.stage_dir(stage.name)
         missing = [o for o in item.outputs if not (stage_dir / o).exists()]
         if missing:

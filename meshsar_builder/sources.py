@@ -93,7 +93,7 @@ def read_label_map(path: str | Path, table: dict[int, str]) -> tuple[np.ndarray,
         img = nib.as_closest_canonical(img)
         data = np.asanyarray(img.dataobj).reshape(img.shape[:3])
     except (OSError, EOFError, zlib.error, gzip.BadGzipFile, ValueError) as e:
-        raise InputError(f"{path}: image data unreadable ({type(e).__name__}: {e})") from e
+        raise InputError(f"{path}: not a readable NIfTI file, image data truncated or corrupt ({type(e).__name__}: {e})") from e
     if data.dtype.kind == "f":
         if not np.all(np.isfinite(data)):
             raise InputError(f"{path}: label map has NaN or infinite values")

@@ -1,0 +1,136 @@
+"""The stage runner end to end: sidecars, skipping, failures, resumption after a kill."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from meshsar_builder import recipe as R
+from meshsar_builder.cli import main
+from meshsar_builder.io import TMP_MARK
+from meshsar_builder.meshfile import read_ply
+from meshsar_builder.runner import build
+
+from .conftest import MANIFESTS, ball_volume, save_nifti
+
+NIFTI_RECIPE = """\
+name = "own"
+[[sources]]
+kind = "nifti"
+path = "{path}"
+labels = {{ lv = 1, la = 4 }}
+structures = ["lv"]
+[meshing]
+spacing_mm = {spacing}
+"""
+
+
+def nifti_folder(root: Path, n_good: int = 2) -> Path:
+    for i in range(n_good):
+        mask, affine = ball_volume((40, 40, 40), (1, 1, 1), 10 + 2 * i)
+        save_nifti(root / f"good{i}.nii.gz", mask.astype(np.int16), affine)
+    return root
+
+
+def outputs_of(out: Path, stage: str) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted((out / stage).glob("*")) if p.suffix != ".json"}
+
+
+def test_failures_are_named_and_the_rest_finishes(tmp_path, tmp_recipe, capsys):
+    data = nifti_folder(tmp_path / "data")
+    (data / "corrupt.nii.gz").write_bytes((data / "good0.nii.gz").read_bytes()[:200])
+    save_nifti(data / "empty.nii.gz", np.zeros((10, 10, 10), np.int16))
+    la_only = np.zeros((10, 10, 10), np.int16)
+    la_only[3:7, 3:7, 3:7] = 4
+    save_nifti(data / "la_only.nii.gz", la_only)
+    recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.0))
+    out = tmp_path / "out"
+    assert main(["build", str(recipe), "--out", str(out)]) == 1
+    failures = {f["item"]: f for f in json.loads((out / "failures.json").read_text())}
+    assert set(failures) == {"nifti-corrupt", "nifti-empty", "nifti-la_only"}
+    assert "corrupt.nii.gz: not a readable NIfTI" in failures["nifti-corrupt"]["message"]
+    assert "empty.nii.gz: none of the labels [1, 4] found" in failures["nifti-empty"]["message"]
+    assert "la_only.nii.gz: none of the structures ['lv'] present (found: ['la'])" in failures["nifti-la_only"]["message"]
+    assert sorted(outputs_of(out, "meshes")) == ["nifti-good0.ply", "nifti-good1.ply"]
+    printed = capsys.readouterr().out
+    assert "3 item(s) failed" in printed and "meshes/nifti-empty" in printed
+    side = json.loads((out / "meshes" / "nifti-good1.json").read_text())
+    assert side["euler"] == 2 and side["watertight"] and side["volume_ml"] == pytest.approx(4 / 3 * np.pi * 12**3 / 1000, rel=0.04)  # smoothing shrinks a small ball by ~σ²/R
+    assert set(side["inputs"]) == {str(data / "good1.nii.gz")} and side["outputs"]["nifti-good1.ply"]
+
+
+def test_rerun_skips_and_param_change_reruns(tmp_path, tmp_recipe):
+    data = nifti_folder(tmp_path / "data")
+    out = tmp_path / "out"
+    first = build(R.load(tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.0))), out, until="meshes")
+    assert [r["ran"] for r in first.summary] == [1, 2]
+    again = build(R.load(tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.0))), out, until="meshes")
+    assert [r["ran"] for r in again.summary] == [0, 0] and [r["skipped"] for r in again.summary] == [1, 2]
+    changed = build(R.load(tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.5))), out, until="meshes")
+    assert [r["ran"] for r in changed.summary] == [0, 2]
+    forced = build(R.load(tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.5))), out, until="meshes", force=("meshes",))
+    assert [r["ran"] for r in forced.summary] == [0, 2]
+    # an edited input is remeshed, the other is not
+    mask, affine = ball_volume((40, 40, 40), (1, 1, 1), 15)
+    save_nifti(data / "good0.nii.gz", mask.astype(np.int16), affine)
+    edited = build(R.load(tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.5))), out, until="meshes")
+    assert [r["ran"] for r in edited.summary] == [1, 1]
+
+
+def test_killed_build_resumes_to_identical_outputs(tmp_path, tmp_recipe):
+    data = nifti_folder(tmp_path / "data", n_good=6)
+    recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=0.5))
+    clean, killed = tmp_path / "clean", tmp_path / "killed"
+    assert build(R.load(recipe), clean, until="meshes").failures == []
+    cmd = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(killed), "--until", "meshes"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while len(list((killed / "meshes").glob("*.json"))) < 2 and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.01)
+    assert proc.poll() is None, "build finished before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert len(list((killed / "meshes").glob("*.json"))) < 6  # killed mid-stage
+    resumed = build(R.load(recipe), killed, until="meshes")
+    assert resumed.failures == [] and resumed.summary[1]["skipped"] >= 2
+    assert outputs_of(killed, "meshes") == outputs_of(clean, "meshes")
+    assert not [p for p in killed.rglob("*") if TMP_MARK in p.name]
+
+
+def test_unknown_stage_is_refused(tmp_path, tmp_recipe, capsys):
+    recipe = tmp_recipe(NIFTI_RECIPE.format(path=nifti_folder(tmp_path / "d", 1), spacing=1.0))
+    assert main(["build", str(recipe), "--out", str(tmp_path / "o"), "--until", "nonsense"]) == 2
+    assert "unknown stage 'nonsense'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_smoke_recipe_meshes_are_closed_and_same_with_two_workers(tmp_path):
+    recipe = R.load(MANIFESTS / "smoke.toml")
+    one, two = tmp_path / "w1", tmp_path / "w2"
+    r1 = build(recipe, one, until="meshes")
+    assert r1.failures == []
+    meshes = sorted((one / "meshes").glob("*.ply"))
+    assert len(meshes) == 3 + 4  # three whole hearts, one beating subject's four frames
+    for p in meshes:
+        verts, faces, labels = read_ply(p)
+        m = trimesh.Trimesh(verts, faces, process=False)
+        assert m.is_watertight and m.euler_number == 2, p.name
+        assert labels is not None and labels.min() >= 1
+    wh = read_ply(one / "meshes" / "phantom_wh-ct_train_1001.ply")[2]
+    assert set(np.unique(wh)) == set(range(1, 8))  # all seven structures reach the surface
+    side = json.loads((one / "meshes" / "phantom_bv-patient001-f01.json").read_text())
+    assert (side["phase"], side["provenance"], side["frame"]) == ("ED", "phantom", 1)
+    build(recipe, two, workers=2, until="meshes")
+    for stage in ("sources", "meshes"):
+        a = {p.relative_to(one / stage): p.read_bytes() for p in (one / stage).rglob("*") if p.is_file() and p.suffix != ".json"}
+        b = {p.relative_to(two / stage): p.read_bytes() for p in (two / stage).rglob("*") if p.is_file() and p.suffix != ".json"}
+        assert a == b
