@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install dataset test test-fast clean
+.PHONY: install dataset test test-fast clean splits verify
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -32,3 +32,12 @@ test-fast: $(STAMP)
 
 clean:
 	rm -rf build
+
+OUT ?= build/demo
+SEED ?= 0
+
+splits: $(STAMP)
+	$(VENV)/bin/meshsar splits $(OUT) --seed $(SEED)
+
+verify: $(STAMP)
+	$(VENV)/bin/meshsar verify $(OUT)

@@ -21,6 +21,28 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 1 if results.failures else 0
 
 
+def cmd_splits(args: argparse.Namespace) -> int:
+    from .splits import parse_ratios, split_dataset
+
+    try:
+        ratios = parse_ratios(args.ratios) if args.ratios else None
+    except ValueError as e:
+        print(f"error: --ratios: {e}", file=sys.stderr)
+        return 2
+    print(split_dataset(Path(args.out), args.seed, ratios))
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from .verify import verify
+
+    problems = verify(Path(args.out))
+    for p in problems:
+        print(p)
+    print(f"{len(problems)} problem(s)" if problems else f"{args.out}: dataset verified")
+    return 1 if problems else 0
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="meshsar", description="Build the Cardiac Mesh-SAR dataset.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -31,6 +53,14 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--until", metavar="STAGE", help="stop after this stage")
     b.add_argument("--force", metavar="STAGE", action="append", default=[], help="rerun every item of STAGE (repeatable)")
     b.set_defaults(func=cmd_build)
+    s = sub.add_parser("splits", help="write splits/seed-S.json from the index (shards are not read)")
+    s.add_argument("out", help="built dataset folder")
+    s.add_argument("--seed", type=int, required=True)
+    s.add_argument("--ratios", help="e.g. train=0.8,test=0.2 (default)")
+    s.set_defaults(func=cmd_splits)
+    v = sub.add_parser("verify", help="check every shard's digest and arrays, the index and the splits")
+    v.add_argument("out", help="built dataset folder")
+    v.set_defaults(func=cmd_verify)
     return p
 
 

@@ -64,10 +64,11 @@ class SplitParams:
     group_by: str = "subject"
 
     def __post_init__(self):
-        if not self.ratios or any(not (v >= 0) for v in self.ratios.values()) or sum(self.ratios.values()) <= 0:
-            raise ValueError(f"ratios: need non-negative values with a positive sum, got {self.ratios}")
-        if self.group_by not in ("subject", "sample"):
-            raise ValueError(f"group_by: must be 'subject' or 'sample', got {self.group_by!r}")
+        from .splits import GROUP_BY, check_ratios
+
+        check_ratios(self.ratios)
+        if self.group_by not in GROUP_BY:
+            raise ValueError(f"group_by: must be one of {GROUP_BY}, got {self.group_by!r}")
 
 
 @dataclass(frozen=True)

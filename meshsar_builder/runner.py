@@ -70,6 +70,9 @@ class Stage:
     version: int  # bump when the stage's code changes its outputs
     plan: Callable[[Context, "Results"], list[Item]]
     run: Callable[[Context, Item], dict]
+    # Runs in the main process after every item: for outputs that depend on all items
+    # (e.g. an index holding each shard's digest), which no single item can write.
+    finish: Callable[[Context, "Results"], None] | None = None
 
 
 @dataclass
@@ -202,6 +205,12 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool: cf.Executor | 
     bar.close()
     # Keep plan order, so later stages see items in the same order whatever finished first.
     results.done[stage.name] = {i: done[i] for i in ids if i in done}
+    if stage.finish is not None:
+        try:
+            stage.finish(ctx, results)
+        except Exception as e:  # recorded like an item, so the summary and exit status show it
+            failed.append({"stage": stage.name, "item": "(finish)", "error": type(e).__name__,
+                           "message": str(e), "inputs": [], "traceback": traceback.format_exc(limit=6)})
     results.failures.extend(sorted(failed, key=lambda f: f["item"]))
     row = {
         "stage": stage.name,
