@@ -43,6 +43,13 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 1 if problems else 0
 
 
+def cmd_preview(args: argparse.Namespace) -> int:
+    from .card import preview
+
+    print(preview(Path(args.out), args.n))
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="meshsar", description="Build the Cardiac Mesh-SAR dataset.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -61,6 +68,10 @@ def parser() -> argparse.ArgumentParser:
     v = sub.add_parser("verify", help="check every shard's digest and arrays, the index and the splits")
     v.add_argument("out", help="built dataset folder")
     v.set_defaults(func=cmd_verify)
+    pv = sub.add_parser("preview", help="render a gallery of samples (meshes beside their SAR images) to card/preview.png")
+    pv.add_argument("out", help="built dataset folder")
+    pv.add_argument("--n", type=int, default=8, help="samples to show (default 8)")
+    pv.set_defaults(func=cmd_preview)
     return p
 
 

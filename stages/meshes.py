@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import trimesh
 
 from meshsar_builder.meshfile import write_ply
 from meshsar_builder.meshing import labels_to_surface
 from meshsar_builder.runner import Context, Item, Results, Stage
-from meshsar_builder.sources import LabelItem, read_label_map
+from meshsar_builder.sources import STRUCTURES, LabelItem, read_label_map
 
 NAME = "meshes"
 
@@ -39,6 +40,8 @@ def run(ctx: Context, item: Item) -> dict:
     write_ply(ctx.stage_dir(NAME) / f"{item.id}.ply", surf.verts, surf.faces, surf.labels)
     mesh = trimesh.Trimesh(surf.verts, surf.faces, process=False)
     lo, hi = surf.verts.min(axis=0), surf.verts.max(axis=0)
+    voxel_ml = abs(np.linalg.det(affine[:3, :3])) / 1000.0
+    counts = np.bincount(labels.ravel(), minlength=max(STRUCTURES.values()) + 1)
     return {
         "n_verts": len(surf.verts),
         "n_faces": len(surf.faces),
@@ -49,9 +52,11 @@ def run(ctx: Context, item: Item) -> dict:
         "closing_voxels": surf.closing_voxels,
         "spacing_mm": ctx.recipe.meshing.spacing_mm,
         "center_mm": [round(float(c), 4) for c in (lo + hi) / 2],
+        # from voxel counts of the label map: chamber volumes over the cycle, for the dataset card
+        "structure_volumes_ml": {s: round(float(counts[i] * voxel_ml), 3) for s, i in STRUCTURES.items() if counts[i]},
         "use": use,
         **{k: d[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")},
     }
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

@@ -1,0 +1,197 @@
+"""The dataset card: the pictures and tables a researcher looks at before using a dataset.
+
+Renders are off-screen (pyvista/VTK with EGL), with a parallel camera looking
+along -w of each view and v up, scaled to the view's field of view, so a render
+lines up pixel for pixel with the SAR images beside it.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+# Off-screen VTK needs EGL where there is no display; set before pyvista loads VTK.
+os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+
+from .io import atomic_path, read_json  # noqa: E402
+from .shards import INDEX_NAME, Shard  # noqa: E402
+from .sources import STRUCTURES  # noqa: E402
+
+# Canonical structure id -> colour (0: unlabelled).
+PALETTE = np.array([
+    [0.6, 0.6, 0.6], [0.85, 0.2, 0.2], [0.95, 0.6, 0.2], [0.2, 0.45, 0.85], [0.6, 0.3, 0.7],
+    [0.3, 0.7, 0.8], [0.85, 0.4, 0.6], [0.45, 0.7, 0.3],
+])
+
+
+def render_views(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray | None, views: list[dict],
+                 fov_mm: float, size: int = 256) -> list[np.ndarray]:
+    """One (size, size, 3) uint8 render per view, coloured by structure.
+
+    verts : (n, 3) mm heart frame, faces : (m, 3), labels : (n,) uint8 or None,
+    views : [{"u", "v", "w"}] unit vectors; the picture spans fov_mm like the SAR images.
+    """
+    import pyvista as pv
+
+    mesh = pv.PolyData(np.asarray(verts, float), np.hstack([np.full((len(faces), 1), 3), faces]).ravel())
+    colours = PALETTE[np.zeros(len(verts), int) if labels is None else np.minimum(labels, len(PALETTE) - 1)]
+    mesh["rgb"] = (colours * 255).astype(np.uint8)
+    out = []
+    plotter = pv.Plotter(off_screen=True, window_size=(size, size))
+    plotter.set_background("black")
+    plotter.add_mesh(mesh, scalars="rgb", rgb=True, smooth_shading=True)
+    plotter.enable_parallel_projection()
+    for view in views:
+        w, v = np.asarray(view["w"], float), np.asarray(view["v"], float)
+        plotter.camera_position = [tuple(w * 1000.0), (0.0, 0.0, 0.0), tuple(v)]
+        plotter.camera.parallel_scale = fov_mm / 2
+        plotter.camera.clipping_range = (1.0, 3000.0)
+        plotter.render()
+        out.append(np.asarray(plotter.screenshot(return_img=True))[..., :3])
+    plotter.close()
+    return out
+
+
+def _save(fig, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def gallery(samples: list, index: dict, path: Path) -> None:
+    """Per sample a row: for each view, the mesh render, then each SAR channel.
+
+    samples : meshsar_builder.shards.Sample list; index : index.json object.
+    """
+    views, channels, fov = index["views"], index["channels"], index["fov_mm"]
+    cols = len(views) * (1 + len(channels))
+    fig, axes = plt.subplots(len(samples), cols, figsize=(1.6 * cols, 1.7 * len(samples)), squeeze=False)
+    for r, s in enumerate(samples):
+        renders = render_views(s.verts, s.faces, s.vert_labels, views, fov)
+        for k, view in enumerate(views):
+            base = k * (1 + len(channels))
+            axes[r, base].imshow(renders[k])
+            for c, name in enumerate(channels):
+                signed = name == "depth"
+                axes[r, base + 1 + c].imshow(s.sar[k, c].astype(np.float32), cmap="RdBu_r" if signed else "gray",
+                                             vmin=-1 if signed else 0, vmax=1)
+            if r == 0:
+                axes[r, base].set_title(f"{view['name']}\nmesh", fontsize=8)
+                for c, name in enumerate(channels):
+                    axes[r, base + 1 + c].set_title(f"{view['name']}\n{name}", fontsize=8)
+        axes[r, 0].set_ylabel(s.sample_id, fontsize=7)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+    handles = [Patch(color=PALETTE[i], label=name) for name, i in STRUCTURES.items()]
+    fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
+    _save(fig, path)
+
+
+def ssm_variance_plot(report: dict, path: Path) -> None:
+    """Variance explained per mode and cumulatively (compactness), with generalisation."""
+    var = np.asarray(report["variances_mm2"])
+    frac = var / report["total_variance_mm2"]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
+    modes = np.arange(1, len(var) + 1)
+    a.bar(modes, frac * 100, color="0.6", label="per mode")
+    a.plot(modes, np.asarray(report["compactness"]) * 100, "o-", color="C3", label="cumulative")
+    a.set_xlabel("mode")
+    a.set_ylabel("variance explained (%)")
+    a.legend(fontsize=8)
+    b.plot(modes, report["generalisation_mm"], "o-", color="C0")
+    b.axhline(report["specificity_mm"], color="C2", ls="--", label=f"specificity {report['specificity_mm']:.2f} mm")
+    b.set_xlabel("modes used")
+    b.set_ylabel("leave-one-out error (mm)")
+    b.legend(fontsize=8)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def ssm_mode_strip(model, view: dict, fov_mm: float, path: Path, n_modes: int = 3) -> None:
+    """Mean ± 3σ along the first modes, rendered from one view."""
+    n_modes = min(n_modes, len(model.variances))
+    steps = (-3.0, 0.0, 3.0)
+    fig, axes = plt.subplots(n_modes, len(steps), figsize=(2.2 * len(steps), 2.2 * n_modes), squeeze=False)
+    centre = (model.mean.min(axis=0) + model.mean.max(axis=0)) / 2
+    for m in range(n_modes):
+        for j, k in enumerate(steps):
+            coeffs = np.zeros(m + 1)
+            coeffs[m] = k * np.sqrt(model.variances[m])
+            (img,) = render_views(model.shape(coeffs) - centre, model.faces, model.labels, [view], fov_mm)
+            axes[m, j].imshow(img)
+            axes[m, j].set_xticks([])
+            axes[m, j].set_yticks([])
+            axes[0, j].set_title(f"{k:+.0f} σ" if k else "mean", fontsize=9)
+        axes[m, 0].set_ylabel(f"mode {m + 1}", fontsize=9)
+    _save(fig, path)
+
+
+def cycle_plot(frames: list[dict], path: Path) -> None:
+    """Chamber volumes over the cycle of each dynamic subject (from label-map voxel counts).
+
+    frames : meshes-stage records with subject, cycle_fraction, phase, structure_volumes_ml.
+    """
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    by_subject: dict[str, list[dict]] = {}
+    for f in frames:
+        by_subject.setdefault(f"{f['source']}/{f['subject']}", []).append(f)
+    for i, (subject, recs) in enumerate(sorted(by_subject.items())):
+        recs = sorted(recs, key=lambda f: f["cycle_fraction"])
+        t = [f["cycle_fraction"] for f in recs]
+        for name, ls in (("lv", "-"), ("rv", "--"), ("myo", ":")):
+            ax.plot(t, [f["structure_volumes_ml"].get(name, 0.0) for f in recs], ls, color=f"C{i}",
+                    label=f"{subject} {name.upper()}")
+        for f in recs:
+            if f["phase"]:
+                ax.annotate(f["phase"], (f["cycle_fraction"], f["structure_volumes_ml"].get("lv", 0.0)), fontsize=7)
+    ax.set_xlabel("fraction of the cardiac cycle")
+    ax.set_ylabel("volume (ml)")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def gallery_ids(index: dict, n: int) -> list[str]:
+    """The first samples of each subset, n in all, in dataset order."""
+    by_subset = defaultdict(list)
+    for sid, s in index["samples"].items():
+        by_subset[s["subset"]].append(sid)
+    per = -(-n // max(len(by_subset), 1))
+    return [sid for ids in by_subset.values() for sid in ids[:per]][:n]
+
+
+def load_samples(out: Path, index: dict, ids: list[str]) -> list:
+    """The samples `ids` read from the shards of a built dataset (each shard opened once)."""
+    shards = {}
+    samples = []
+    for sid in ids:
+        k, row = index["samples"][sid]["shard"], index["samples"][sid]["row"]
+        if k not in shards:
+            shards[k] = Shard(out / index["shards"][k]["file"])
+        samples.append(shards[k][row])
+    return samples
+
+
+def preview(out: Path, n: int) -> Path:
+    """`meshsar preview`: a gallery of the first n samples of a built dataset, as card/preview.png."""
+    index = read_json(out / INDEX_NAME)
+    path = out / "card" / "preview.png"
+    gallery(load_samples(out, index, gallery_ids(index, n)), index, path)
+    return path
+
+
+def markdown_table(header: list[str], rows: list[list]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+

@@ -1,0 +1,93 @@
+"""Stage `card`: the dataset card, `card/README.md` with pictures and tables.
+
+A gallery of samples (each mesh rendered from the views beside its SAR
+channels), the shape model's variance explained and a mode strip (mean ± 3σ),
+chamber volumes over the cycle of the dynamic subjects, counts per source,
+subset and split, and the time each stage took per item. One item; it reads the
+index, a few shards, the shape model and the stages' sidecars.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+from meshsar_builder import card
+from meshsar_builder.io import read_json, write_bytes
+from meshsar_builder.runner import STAGE_ORDER, Context, Item, Results, Stage
+from meshsar_builder.shards import INDEX_NAME
+from meshsar_builder.splits import RESERVED, split_path
+from meshsar_builder.ssm import load_model
+
+NAME = "card"
+GALLERY = 6  # samples in the card's gallery; `meshsar preview --n N` draws more
+
+
+def plan(ctx: Context, results: Results) -> list[Item]:
+    index_path = ctx.out / INDEX_NAME
+    if not index_path.exists() or not results.of("shards"):
+        return []
+    model = ctx.stage_dir("ssm") / "model.npz"
+    split = split_path(ctx.out, ctx.recipe.splits.seed)
+    inputs = tuple(str(p) for p in (index_path, split, model, ctx.stage_dir("ssm") / "report.json") if p.exists())
+    dynamic = [r for r in results.of("meshes").values() if r.get("frame") is not None]
+    timing = {}
+    for stage in STAGE_ORDER:
+        secs = [r["seconds"] for r in results.of(stage).values()]
+        if secs:
+            timing[stage] = {"items": len(secs), "seconds": round(sum(secs), 1), "per_item": round(sum(secs) / len(secs), 2)}
+    outputs = ["README.md", "gallery.png"]
+    if model.exists():
+        outputs += ["ssm_variance.png", "ssm_modes.png"]
+    if dynamic:
+        outputs.append("cycle.png")
+    return [Item("card", tuple(outputs), inputs=inputs, params={"gallery": GALLERY, "version": 1},
+                 data={"dynamic": dynamic, "timing": timing})]
+
+
+def run(ctx: Context, item: Item) -> dict:
+    folder = ctx.stage_dir(NAME)
+    index = read_json(ctx.out / INDEX_NAME)
+    ids = card.gallery_ids(index, GALLERY)
+    card.gallery(card.load_samples(ctx.out, index, ids), index, folder / "gallery.png")
+    lines = [f"# Dataset card: {index['recipe']}", "",
+             f"{index['n_samples']} samples in {len(index['shards'])} shards; views "
+             f"{', '.join(v['name'] for v in index['views'])}; images {index['image_size'][0]}×{index['image_size'][1]} "
+             f"over {index['fov_mm']} mm; channels {', '.join(index['channels'])}. "
+             f"Recipe sha256 `{index['recipe_sha256'][:12]}`, code {index['code_version']}.", "",
+             "## Samples", "", "Each row: per view the mesh (coloured by structure, same field of view as the images), "
+             "then the SAR channels (intensity in dB over the dynamic range; depth along w, red toward the radar).", "",
+             "![gallery](gallery.png)", ""]
+    if "ssm_variance.png" in item.outputs:
+        report = read_json(ctx.stage_dir("ssm") / "report.json")
+        card.ssm_variance_plot(report, folder / "ssm_variance.png")
+        card.ssm_mode_strip(load_model(ctx.stage_dir("ssm") / "model.npz"), index["views"][0], index["fov_mm"],
+                            folder / "ssm_modes.png")
+        lines += ["## Shape model", "",
+                  f"{report['subjects']} registered subjects, {report['n_vertices']} vertices, {report['modes']} modes "
+                  f"({report['compactness'][-1] * 100:.1f} % of the variance). Generalisation (leave-one-out, all modes): "
+                  f"{report['generalisation_mm'][-1]:.2f} mm; specificity: {report['specificity_mm']:.2f} ± "
+                  f"{report['specificity_std_mm']:.2f} mm; self-intersecting draws redrawn: {report['self_intersection_redraws']}.", "",
+                  "![variance](ssm_variance.png)", "", "Mean ± 3σ along the first modes:", "", "![modes](ssm_modes.png)", ""]
+    if "cycle.png" in item.outputs:
+        card.cycle_plot(item.data["dynamic"], folder / "cycle.png")
+        lines += ["## Dynamic subjects", "", "Chamber volumes over the cycle, from the label maps' voxel counts.", "",
+                  "![cycle](cycle.png)", ""]
+    split_file = split_path(ctx.out, ctx.recipe.splits.seed)
+    split = read_json(split_file) if split_file.exists() else {}
+    names = [k for k in split if k not in RESERVED]
+    where = {sid: name for name in names for sid in split[name]}
+    rows = defaultdict(lambda: defaultdict(int))
+    for sid, s in index["samples"].items():
+        rows[(s["source"], s["subset"])][where.get(sid, "-")] += 1
+    header = ["source", "subset", "samples", *(f"{n} (seed {split['seed']})" for n in names)]
+    table = [[src, sub, sum(c.values()), *(c.get(n, 0) for n in names)] for (src, sub), c in sorted(rows.items())]
+    lines += ["## Counts", "", card.markdown_table(header, table), ""]
+    timing = item.data["timing"]
+    lines += ["## Time per stage", "", "Item seconds as recorded in the stages' sidecars (one BLAS thread per item).", "",
+              card.markdown_table(["stage", "items", "seconds", "seconds per item"],
+                                  [[s, t["items"], t["seconds"], t["per_item"]] for s, t in timing.items()]), ""]
+    write_bytes(folder / "README.md", "\n".join(lines).encode("utf-8"))
+    return {"gallery": ids, "counts": index["counts"]}
+
+
+STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
