@@ -1,9 +1,12 @@
 """Radar benchmark: seconds per view on one core, production echo vs direct, Embree ray rate.
 
-run() measures in a child process started with OMP/OPENBLAS/MKL thread counts of 1
-(they are read once, when numpy loads) and pinned to one CPU with
-sched_setaffinity, so BLAS, FFT and Embree all run on one core. Every timing is
-the minimum of a few repeats: the machines this runs on are shared.
+run() measures in a child process started with OMP/OPENBLAS/MKL/NUMBA thread counts
+of 1 (they are read once, when numpy and numba load) and pinned to one CPU with
+sched_setaffinity, so BLAS, FFT, Embree and the echo kernel all run on one core.
+Every timing is the minimum of a few repeats: the machines this runs on are shared.
+The echo's first call in a process also pays for its numba kernels: compiling them
+(timed once more in a child with an empty NUMBA_CACHE_DIR) or loading them from the
+cache that numba keeps in __pycache__.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -22,7 +26,8 @@ TARGET_ERROR = 1e-4
 TARGET_VIEW_SECONDS = 1.5
 DIRECT_ANTENNAS = 48  # the direct sum is timed on this many antennas and scaled to the aperture
 REPEATS = 3
-THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                    "NUMBA_NUM_THREADS")
 
 
 def default_mesh() -> tuple[np.ndarray, np.ndarray]:
@@ -43,11 +48,24 @@ def _best(function, repeats=REPEATS):
     return best, result
 
 
+def first_echo_seconds() -> float:
+    """Seconds of the first echo call in this process (a small one): kernel compile or cache load."""
+    from . import radar as R
+
+    radar = R.RadarParams(aperture=(8, 8), n_samples=8)
+    points = np.array([[0.0, 0.0, 0.0], [5.0, 3.0, -2.0]])
+    normals = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    start = time.perf_counter()
+    R.echo(points, normals, np.ones(2), R.aperture_positions(radar, "anterior"), R.frequencies(radar), radar)
+    return time.perf_counter() - start
+
+
 def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
     """The benchmark numbers at default parameters (call on one core; run() arranges that)."""
     from . import radar as R
     from .sar import ImageParams, view_images
 
+    first_call = first_echo_seconds()
     radar, images = R.RadarParams(), ImageParams()
     freqs, (x_mm, y_mm) = R.frequencies(radar), R.aperture_axes(radar)
     _, normals, areas = R.facet_geometry(verts, faces)
@@ -64,9 +82,9 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
         signal = signal.reshape(*radar.aperture, radar.n_samples)
         t_img, _ = _best(lambda: view_images(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
         subset = np.linspace(0, len(positions) - 1, DIRECT_ANTENNAS).round().astype(int)
-        t_direct, direct = _best(lambda: R.echo(*args, positions[subset], freqs, radar, method="direct"), 1)
-        blocked = signal.reshape(len(positions), -1)[subset]
-        error = float(np.linalg.norm(blocked - direct) / np.linalg.norm(direct))
+        t_direct, direct = _best(lambda: R.echo(*args, positions[subset], freqs, radar, method="direct"))
+        production = signal.reshape(len(positions), -1)[subset]
+        error = float(np.linalg.norm(production - direct) / np.linalg.norm(direct))
         direct_scaled = t_direct * len(positions) / len(subset)
         # Embree alone: the same rays as the visibility pass, without the numpy around them.
         centres = R.facet_geometry(verts, faces)[0]
@@ -98,6 +116,7 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
         "threads": "one core: child process with " + ", ".join(f"{name}=1" for name in THREAD_VARIABLES)
                    + ", pinned with sched_setaffinity",
         "repeats": REPEATS,
+        "echo_first_call_seconds": first_call,
         "views": views,
         "embree_rays_per_second": ray_count / ray_seconds,
         "targets": {
@@ -122,12 +141,23 @@ def run(out_dir: Path, verts: np.ndarray | None = None, faces: np.ndarray | None
         subprocess.run([sys.executable, "-m", __name__, str(mesh_path), str(result_path)], env=env, check=True)
     finally:
         mesh_path.unlink(missing_ok=True)
-    return json.loads(result_path.read_text())
+    result = json.loads(result_path.read_text())
+    with tempfile.TemporaryDirectory() as cache:
+        compile_run = subprocess.run([sys.executable, "-m", __name__, "--first-echo"], check=True, text=True,
+                                     env={**env, "NUMBA_CACHE_DIR": cache}, capture_output=True)
+    result["echo_compile_seconds"] = float(compile_run.stdout.split()[-1])
+    temporary = result_path.with_suffix(".json.tmp")
+    temporary.write_text(json.dumps(result, indent=2) + "\n")
+    temporary.replace(result_path)
+    return result
 
 
-def _main(mesh_path: str, result_path: str) -> None:
+def _main(mesh_path: str, result_path: str | None = None) -> None:
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    if mesh_path == "--first-echo":
+        print(first_echo_seconds())
+        return
     with np.load(mesh_path) as mesh:
         result = measure(mesh["verts"], mesh["faces"])
     temporary = Path(result_path).with_suffix(".json.tmp")

@@ -8,6 +8,7 @@ import pytest
 import trimesh
 
 from meshsar_builder import radar as R
+from meshsar_builder.errors import MeshsarError
 from meshsar_builder.sar import ImageParams
 
 SMALL = dict(aperture=(12, 10), step_mm=4.0, n_samples=24, echo_decimation=(3, 2, 2))
@@ -157,14 +158,9 @@ def relative_error(a, b):
     return np.linalg.norm(a - b) / np.linalg.norm(b)
 
 
-@pytest.mark.parametrize("mesh_name, overrides", [
-    ("icosphere", {}),
-    ("icosphere", {"rvp": False, "t0_s": 3e-6, "n_samples": 50}),
-    ("torus", {"scatterer": "random", "p": 2.5, "kappa": 0.1}),
-    ("box", {"n_samples": 7, "f0_hz": 60e9}),
-])
-def test_blocked_echo_matches_direct(mesh_name, overrides):
-    radar = R.RadarParams(aperture=(16, 16), step_mm=5.0, **overrides)
+def echo_case(mesh_name, overrides, view="left"):
+    """Arguments of R.echo for the visible facets of a test mesh, on a 16 x 16 aperture."""
+    radar = R.RadarParams(**{"aperture": (16, 16), "step_mm": 5.0, **overrides})
     mesh = {
         "icosphere": lambda: trimesh.creation.icosphere(3, radius=50.0),
         "torus": lambda: trimesh.creation.torus(major_radius=45.0, minor_radius=15.0),
@@ -173,11 +169,74 @@ def test_blocked_echo_matches_direct(mesh_name, overrides):
     assert mesh.is_watertight
     _, normals, areas = R.facet_geometry(mesh.vertices, mesh.faces)
     points = R.scatterer_points(mesh.vertices, mesh.faces, radar.scatterer, np.random.default_rng(1))
-    vis, _ = R.visibility(mesh.vertices, mesh.faces, R.probe_points(radar, "left"))
+    vis, _ = R.visibility(mesh.vertices, mesh.faces, R.probe_points(radar, view))
     seen = vis > 0
-    args = (points[seen], normals[seen], (vis * areas)[seen], R.aperture_positions(radar, "left"),
+    return (points[seen], normals[seen], (vis * areas)[seen], R.aperture_positions(radar, view),
             R.frequencies(radar), radar)
-    assert relative_error(R.echo(*args, method="blocked"), R.echo(*args, method="direct")) <= 1e-4
+
+
+@pytest.mark.parametrize("mesh_name, overrides", [
+    ("icosphere", {}),
+    ("icosphere", {"rvp": False, "t0_s": 3e-6, "n_samples": 50}),
+    ("torus", {"scatterer": "random", "p": 2.5, "kappa": 0.1}),
+    ("torus", {"p": 3.0, "n_samples": 256, "z0_mm": 150.0}),  # a 16 GHz sweep: 37 terms
+    ("box", {"n_samples": 7, "f0_hz": 60e9}),
+])
+def test_chebyshev_echo_matches_direct(mesh_name, overrides):
+    args = echo_case(mesh_name, overrides)
+    assert relative_error(R.echo(*args, method="chebyshev"), R.echo(*args, method="direct")) <= 1e-4
+
+
+def test_chebyshev_echo_is_deterministic_under_threads():
+    """Same bytes on repeats and from concurrent threads (the kernel is serial and releases the GIL)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    args = echo_case("icosphere", {})
+    first = R.echo(*args).tobytes()
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(lambda _: R.echo(*args).tobytes(), range(4)))
+    assert all(result == first for result in results)
+
+
+def test_chebyshev_echo_bytes_do_not_depend_on_thread_settings():
+    """BLAS, OpenMP and numba thread counts of 1 and 2 give the same echo bytes."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = (
+        "import hashlib, numpy as np, trimesh\n"
+        "from meshsar_builder import radar as R\n"
+        "radar = R.RadarParams(aperture=(6, 5), n_samples=16)\n"
+        "mesh = trimesh.creation.icosphere(2, radius=50.0)\n"
+        "_, normals, areas = R.facet_geometry(mesh.vertices, mesh.faces)\n"
+        "out = R.echo(mesh.triangles_center, normals, areas, R.aperture_positions(radar, 'left'),\n"
+        "             R.frequencies(radar), radar)\n"
+        "print(hashlib.sha256(out.tobytes()).hexdigest())\n"
+    )
+    digests = set()
+    for threads in ("1", "2"):
+        env = {**os.environ, **{name: threads for name in (
+            "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}}
+        run = subprocess.run([sys.executable, "-c", script], env=env, cwd=Path(__file__).parents[1],
+                             capture_output=True, text=True, check=True)
+        digests.add(run.stdout.strip())
+    assert len(digests) == 1
+
+
+def test_chebyshev_echo_needs_uniform_frequencies():
+    args = list(echo_case("box", {"n_samples": 7}))
+    args[4] = args[4] * np.linspace(1, 1.01, 7) ** 2
+    with pytest.raises(ValueError, match="uniformly spaced"):
+        R.echo(*args, method="chebyshev")
+    R.echo(*args, method="direct")
+
+
+def test_missing_numba_is_a_clear_error(monkeypatch):
+    monkeypatch.setattr(R, "_NUMBA_MISSING", "the production radar echo needs numba (pip install numba)")
+    with pytest.raises(MeshsarError, match="needs numba"):
+        R.echo(*echo_case("box", {"n_samples": 7}))
 
 
 def test_echo_without_scatterers_is_zero():
