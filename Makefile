@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install dataset test test-fast clean splits verify
+.PHONY: install dataset test test-fast clean splits verify bench
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -41,3 +41,8 @@ splits: $(STAMP)
 
 verify: $(STAMP)
 	$(VENV)/bin/meshsar verify $(OUT)
+
+PART ?= all
+
+bench: $(STAMP)
+	$(VENV)/bin/meshsar bench $(PART)

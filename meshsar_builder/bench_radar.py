@@ -11,7 +11,6 @@ cache that numba keeps in __pycache__.
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -20,6 +19,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from .io import read_json, write_json
 
 TARGET_SPEEDUP = 100.0
 TARGET_ERROR = 1e-4
@@ -141,14 +142,12 @@ def run(out_dir: Path, verts: np.ndarray | None = None, faces: np.ndarray | None
         subprocess.run([sys.executable, "-m", __name__, str(mesh_path), str(result_path)], env=env, check=True)
     finally:
         mesh_path.unlink(missing_ok=True)
-    result = json.loads(result_path.read_text())
+    result = read_json(result_path)
     with tempfile.TemporaryDirectory() as cache:
         compile_run = subprocess.run([sys.executable, "-m", __name__, "--first-echo"], check=True, text=True,
                                      env={**env, "NUMBA_CACHE_DIR": cache}, capture_output=True)
     result["echo_compile_seconds"] = float(compile_run.stdout.split()[-1])
-    temporary = result_path.with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(result, indent=2) + "\n")
-    temporary.replace(result_path)
+    write_json(result_path, result)
     return result
 
 
@@ -159,10 +158,7 @@ def _main(mesh_path: str, result_path: str | None = None) -> None:
         print(first_echo_seconds())
         return
     with np.load(mesh_path) as mesh:
-        result = measure(mesh["verts"], mesh["faces"])
-    temporary = Path(result_path).with_suffix(".json.tmp")
-    temporary.write_text(json.dumps(result, indent=2) + "\n")
-    temporary.replace(result_path)
+        write_json(result_path, measure(mesh["verts"], mesh["faces"]))
 
 
 if __name__ == "__main__":

@@ -50,6 +50,15 @@ def cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import PARTS, run
+
+    parts = list(PARTS) if args.part == "all" else [args.part]
+    for part in run(parts, Path(args.out)):
+        print(f"{part}: {Path(args.out) / (part + '.json')}")
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="meshsar", description="Build the Cardiac Mesh-SAR dataset.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -72,6 +81,12 @@ def parser() -> argparse.ArgumentParser:
     pv.add_argument("out", help="built dataset folder")
     pv.add_argument("--n", type=int, default=8, help="samples to show (default 8)")
     pv.set_defaults(func=cmd_preview)
+    from .bench import PARTS
+
+    be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/")
+    be.add_argument("part", nargs="?", default="all", choices=[*PARTS, "all"])
+    be.add_argument("--out", default="build/bench")
+    be.set_defaults(func=cmd_bench)
     return p
 
 

@@ -1,0 +1,175 @@
+"""`meshsar bench` / `make bench`: speed and memory, as JSON under build/bench/.
+
+Parts:
+- radar: seconds per view (visibility, echo, imaging) on one core for a demo
+  mesh, the production echo's speed-up over the direct sum in the same run,
+  Embree rays per second (bench_radar);
+- geometry: seconds per subject for meshing, remeshing and registration, and
+  ms per SSM sample, at the demo recipe's settings on demo phantoms;
+- pipeline: the demo recipe's settings with fewer items, built with 1 and 2
+  workers: seconds per sample per stage, peak memory, scaling.
+Every part runs its measurements with one BLAS thread, like the stages do.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from .io import read_json, write_json
+from .recipe import load
+
+DEMO = Path(__file__).resolve().parents[1] / "manifests" / "demo.toml"
+PARTS = ("radar", "geometry", "pipeline")
+
+
+def demo_subject(index: int = 0):
+    """The meshing-stage surface of the demo recipe's whole-heart phantom number `index`.
+
+    Seeded and read back exactly as the sources and meshes stages do.
+    """
+    from . import phantom
+    from .meshing import labels_to_surface
+    from .seeding import item_rng
+    from .sources import MMWHS_TABLE, read_label_map
+
+    recipe = load(DEMO)
+    spec = recipe.sources[0]
+    subject = f"ct_train_{1001 + index}"
+    with tempfile.TemporaryDirectory() as tmp:
+        rng = item_rng(recipe.seed, "sources", f"{spec.name}-{subject}")
+        path = phantom.write_mmwhs_subject(Path(tmp), subject, rng, voxel_mm=spec.voxel_mm)
+        labels, affine = read_label_map(path, MMWHS_TABLE)
+    return labels_to_surface(labels, affine, list(spec.structures), recipe.meshing)
+
+
+def demo_mesh() -> tuple[np.ndarray, np.ndarray]:
+    """A dataset-sized heart mesh: a demo subject remeshed and simplified to the template size, centred."""
+    from .remesh import remesh, simplify
+
+    recipe = load(DEMO)
+    surf = demo_subject(0)
+    verts, faces = simplify(*remesh(surf.verts, surf.faces, recipe.remesh), recipe.registration.template_vertices)
+    return verts - (verts.min(axis=0) + verts.max(axis=0)) / 2, faces
+
+
+def bench_radar(out: Path) -> dict:
+    from .bench_radar import run
+
+    return run(out, *demo_mesh())
+
+
+def _timed(fn, *args):
+    t0 = time.perf_counter()
+    result = fn(*args)
+    return time.perf_counter() - t0, result
+
+
+def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
+    """Seconds per subject for meshing, remeshing and registration; ms per SSM sample (demo settings)."""
+    from .registration import register
+    from .remesh import remesh, simplify
+    from .seeding import item_rng
+    from .ssm import build_model, sample_valid
+
+    recipe = load(DEMO)
+    timings = {"meshes": [], "remesh": [], "register": []}
+    remeshed, fits = [], []
+    with threadpool_limits(limits=1):
+        for i in range(subjects):
+            t, surf = _timed(demo_subject, i)
+            timings["meshes"].append(t)
+            t, (v, f) = _timed(remesh, surf.verts, surf.faces, recipe.remesh)
+            timings["remesh"].append(t)
+            remeshed.append((v, f))
+        t_verts, t_faces = simplify(*remeshed[0], recipe.registration.template_vertices)
+        for i, (v, f) in enumerate(remeshed):
+            t, (fitted, report) = _timed(register, t_verts, t_faces, v, f, recipe.registration, item_rng(0, "bench", str(i)))
+            timings["register"].append(t)
+            fits.append({k: report[k] for k in ("mean_mm", "p95_mm", "flipped_faces", "self_intersections")})
+            remeshed[i] = fitted
+        model = build_model(np.stack(remeshed), t_faces, recipe.ssm.variance)
+        rng = np.random.default_rng(0)
+        t, _ = _timed(lambda: [sample_valid(model, rng, recipe.ssm) for _ in range(samples)])
+    result = {
+        "settings": {"recipe": str(DEMO.name), "subjects": subjects, "template_vertices": len(t_verts),
+                     "edge_mm": recipe.remesh.edge_mm, "spacing_mm": recipe.meshing.spacing_mm},
+        "seconds_per_subject": {k: float(np.mean(v)) for k, v in timings.items()},
+        "seconds_each": timings,
+        "ms_per_ssm_sample": 1000 * t / samples,
+        "fits": fits,
+    }
+    write_json(out / "geometry.json", result)
+    return result
+
+
+PIPELINE_RECIPE = """
+name = "bench"
+seed = 0
+[[sources]]
+kind = "phantom"
+anatomy = "whole_heart"
+subjects = 4
+[[sources]]
+kind = "phantom"
+anatomy = "biventricular"
+subjects = 1
+frames = 4
+[ssm]
+samples = 8
+"""
+
+
+PEAK_RSS = (
+    "import resource, subprocess, sys; "
+    "subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL); "
+    "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
+)
+
+
+def bench_pipeline(out: Path, workers: tuple[int, ...] = (1, 2)) -> dict:
+    """The demo's settings on 4 whole-heart subjects, 8 SSM samples and 4 frames, with 1 and 2 workers.
+
+    Each build runs as its own `meshsar build` process; peak memory is the
+    largest resident set of that process and its workers.
+    """
+    runs = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        recipe = Path(tmp) / "bench.toml"
+        recipe.write_text(PIPELINE_RECIPE)
+        for n in workers:
+            build_dir = Path(tmp) / f"w{n}"
+            build = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(build_dir),
+                     "--workers", str(n)]
+            t0 = time.perf_counter()
+            # A wrapper process waits for the build, so its children's peak RSS is this build's alone.
+            peak_kb = subprocess.run([sys.executable, "-c", PEAK_RSS, *build], check=True, capture_output=True,
+                                     text=True).stdout.split()[-1]
+            wall = time.perf_counter() - t0
+            per_stage = {}
+            for stage_dir in sorted(p for p in build_dir.iterdir() if p.is_dir()):
+                secs = [read_json(p)["seconds"] for p in stage_dir.glob("*.json") if "seconds" in read_json(p)]
+                if secs:
+                    per_stage[stage_dir.name] = {"items": len(secs), "seconds_per_item": float(np.mean(secs))}
+            samples = read_json(build_dir / "index.json")["n_samples"]
+            runs[str(n)] = {"wall_seconds": wall, "samples": samples, "seconds_per_sample": wall / samples,
+                            "peak_rss_mb_largest_process": int(peak_kb) / 1024, "stages": per_stage}
+    result = {"recipe": "demo settings; " + " ".join(PIPELINE_RECIPE.split()), "runs": runs}
+    if "1" in runs and "2" in runs:
+        speedup = runs["1"]["wall_seconds"] / runs["2"]["wall_seconds"]
+        result["speedup_2_workers"] = speedup
+        result["scaling_efficiency_2_workers"] = speedup / 2
+    write_json(out / "pipeline.json", result)
+    return result
+
+
+def run(parts: list[str], out: Path = Path("build/bench")) -> dict:
+    out.mkdir(parents=True, exist_ok=True)
+    benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline}
+    return {part: benches[part](out) for part in parts}
