@@ -1,0 +1,108 @@
+"""Recipe validation: every malformed recipe names the file and the key."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from meshsar_builder import recipe as R
+from meshsar_builder.errors import RecipeError
+
+from .conftest import MANIFESTS
+
+MINIMAL = 'name = "t"\n[[sources]]\nkind = "phantom"\nsubjects = 2\n'
+
+
+@pytest.mark.parametrize("path", sorted(MANIFESTS.glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_recipes_load(path):
+    r = R.load(path)
+    assert r.name == path.stem and r.sources
+    assert r.sha256 and r.text == path.read_text()
+
+
+def test_defaults_resolved():
+    r = R.parse(MINIMAL + '[[sources]]\nkind = "phantom"\nanatomy = "biventricular"\nsubjects = 1\n')
+    wh, bv = r.sources
+    assert (wh.name, wh.use, wh.voxel_mm) == ("phantom_wh", "ssm", (1.0, 1.0, 1.0))
+    assert (bv.name, bv.use, bv.voxel_mm, bv.structures) == ("phantom_bv", "direct", (1.5, 1.5, 8.0), ("lv", "myo", "rv"))
+    assert r.meshing.spacing_mm == 1.0 and r.shards.shard_size == 64
+    assert r.splits.ratios == {"train": 0.8, "test": 0.2}
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        (MINIMAL + "[meshing]\nspacing = 1.0\n", r"\[meshing\]: unknown key 'spacing'"),
+        (MINIMAL + '[meshing]\nspacing_mm = "one"\n', r"\[meshing\] spacing_mm: expected a number, got 'one'"),
+        (MINIMAL + "[meshing]\nspacing_mm = -1.0\n", r"\[meshing\] spacing_mm: must be > 0"),
+        (MINIMAL + "[shards]\nshard_size = 0\n", r"\[shards\] shard_size: must be >= 1"),
+        (MINIMAL + "[shards]\nshard_size = 2.5\n", r"\[shards\] shard_size: expected an integer"),
+        (MINIMAL + "colour = 1\n", r"unknown key 'colour'"),
+        ('[[sources]]\nkind = "phantom"\nsubjects = 2\n', r"missing required key 'name'"),
+        ('name = "t"\n', r"missing required key 'sources'"),
+        ('name = "t"\n[[sources]]\nsubjects = 2\n', r"\[\[sources\]\] #1: missing required key 'kind'"),
+        ('name = "t"\n[[sources]]\nkind = "dicom"\n', r"#1 kind: must be one of"),
+        ('name = "t"\n[[sources]]\nkind = "phantom"\n', r"#1 subjects: a phantom source needs subjects >= 1"),
+        (MINIMAL + '[[sources]]\nkind = "phantom"\nsubjects = 1\n', r"'phantom_wh' used twice"),
+        ('name = "t"\n[[sources]]\nkind = "nifti"\npath = "x"\n', r"#1 labels: a nifti source needs a label table"),
+        ('name = "t"\n[[sources]]\nkind = "nifti"\npath = "x"\nlabels = { heart = 1 }\n', r"labels: unknown structures \['heart'\]"),
+        ('name = "t"\n[[sources]]\nkind = "acdc"\nstructures = ["la"]\n', r"structures: \['la'\] not in this source's"),
+        (MINIMAL.replace("subjects = 2", "subjects = 2\nvoxel_mm = [1.0, 0.0, 1.0]"), r"voxel_mm: three positive sizes"),
+        ('name = "a b"\n[[sources]]\nkind = "phantom"\nsubjects = 1\n', r"name: letters, digits"),
+        ('name = "t"\n[[sources]\n', r"not valid TOML"),
+        (MINIMAL + '[splits]\nratios = { train = "most" }\n', r"\[splits\] ratios.train: expected a number"),
+    ],
+)
+def test_malformed_recipe_names_file_and_key(tmp_recipe, body, message):
+    path = tmp_recipe(body, "bad.toml")
+    with pytest.raises(RecipeError, match=message) as err:
+        R.load(path)
+    assert str(path) in str(err.value)
+
+
+def test_data_path_uses_meshsar_data(monkeypatch, tmp_path):
+    r = R.parse('name = "t"\n[[sources]]\nkind = "mmwhs"\npath = "MM-WHS"\n')
+    monkeypatch.delenv("MESHSAR_DATA", raising=False)
+    assert str(r.sources[0].data_path()) == "MM-WHS"
+    monkeypatch.setenv("MESHSAR_DATA", str(tmp_path))
+    assert r.sources[0].data_path() == tmp_path / "MM-WHS"
+    no_path = R.parse('name = "t"\n[[sources]]\nkind = "acdc"\n').sources[0]
+    assert no_path.data_path() == tmp_path
+    monkeypatch.delenv("MESHSAR_DATA")
+    with pytest.raises(RecipeError, match="MESHSAR_DATA is not set"):
+        no_path.data_path()
+
+
+toml_scalars = st.one_of(
+    st.booleans(), st.integers(-5, 200), st.floats(-10, 1e4, allow_nan=False),
+    st.text("abcxyz_ ", max_size=6), st.lists(st.integers(0, 9), max_size=3),
+)
+
+
+def toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(map(str, v)) + "]"
+    return repr(v)
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    section=st.sampled_from(sorted(R.SECTIONS)),
+    entries=st.dictionaries(
+        st.sampled_from(["spacing_mm", "sigma_mm", "edge_mm", "samples", "variance", "shard_size", "seed",
+                         "views", "step_mm", "aperture", "size", "fov_mm", "window", "bogus"]),
+        toml_scalars, max_size=3,
+    ),
+)
+def test_any_section_content_parses_or_raises_recipe_error(section, entries):
+    body = MINIMAL + f"[{section}]\n" + "".join(f"{k} = {toml_value(v)}\n" for k, v in entries.items())
+    try:
+        r = R.parse(body, "fuzz.toml")
+    except RecipeError as e:
+        assert str(e).startswith("fuzz.toml: ")
+    else:
+        assert getattr(r, section) is not None
