@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install dataset test test-fast clean splits verify bench
+.PHONY: install dataset test test-fast clean splits verify bench train
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -46,3 +46,9 @@ PART ?= all
 
 bench: $(STAMP)
 	$(VENV)/bin/meshsar bench $(PART)
+
+CONFIG ?= manifests/train/default.toml
+
+train: $(STAMP)
+	$(VENV)/bin/meshsar train $(CONFIG) --data $(OUT) --split seed-$(SEED)
+	$(VENV)/bin/meshsar evaluate $(OUT)/runs/$(basename $(notdir $(CONFIG)))-seed-$(SEED) --data $(OUT) --split seed-$(SEED)

@@ -7,7 +7,8 @@ Parts:
 - geometry: seconds per subject for meshing, remeshing and registration, and
   ms per SSM sample, at the demo recipe's settings on demo phantoms;
 - pipeline: the demo recipe's settings with fewer items, built with 1 and 2
-  workers: seconds per sample per stage, peak memory, scaling.
+  workers: seconds per sample per stage, peak memory, scaling;
+- trainer: ms per training step on the CPU at the default and paper sizes (bench_trainer).
 Every part runs its measurements with one BLAS thread, like the stages do.
 """
 
@@ -26,7 +27,7 @@ from .io import read_json, write_json
 from .recipe import load
 
 DEMO = Path(__file__).resolve().parents[1] / "manifests" / "demo.toml"
-PARTS = ("radar", "geometry", "pipeline")
+PARTS = ("radar", "geometry", "pipeline", "trainer")
 
 
 def demo_subject(index: int = 0):
@@ -169,7 +170,13 @@ def bench_pipeline(out: Path, workers: tuple[int, ...] = (1, 2)) -> dict:
     return result
 
 
+def bench_trainer(out: Path) -> dict:
+    from .bench_trainer import run
+
+    return run(out)
+
+
 def run(parts: list[str], out: Path = Path("build/bench")) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline}
+    benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline, "trainer": bench_trainer}
     return {part: benches[part](out) for part in parts}

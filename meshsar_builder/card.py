@@ -61,7 +61,7 @@ def render_views(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray | None
     return out
 
 
-def _save(fig, path: Path) -> None:
+def save_figure(fig, path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=90, bbox_inches="tight")
     plt.close(fig)
@@ -94,7 +94,7 @@ def gallery(samples: list, index: dict, path: Path) -> None:
         ax.set_yticks([])
     handles = [Patch(color=PALETTE[i], label=name) for name, i in STRUCTURES.items()]
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def ssm_variance_plot(report: dict, path: Path) -> None:
@@ -114,7 +114,7 @@ def ssm_variance_plot(report: dict, path: Path) -> None:
     b.set_ylabel("leave-one-out error (mm)")
     b.legend(fontsize=8)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def ssm_mode_strip(model, view: dict, fov_mm: float, path: Path, n_modes: int = 3) -> None:
@@ -133,7 +133,7 @@ def ssm_mode_strip(model, view: dict, fov_mm: float, path: Path, n_modes: int = 
             axes[m, j].set_yticks([])
             axes[0, j].set_title(f"{k:+.0f} σ" if k else "mean", fontsize=9)
         axes[m, 0].set_ylabel(f"mode {m + 1}", fontsize=9)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def cycle_plot(frames: list[dict], path: Path) -> None:
@@ -158,7 +158,7 @@ def cycle_plot(frames: list[dict], path: Path) -> None:
     ax.set_ylabel("volume (ml)")
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def gallery_ids(index: dict, n: int) -> list[str]:

@@ -59,6 +59,21 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from .train import train
+
+    print(train(args.config, args.data, args.split, args.out).run)
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluate import evaluate
+
+    evaluate(args.run, args.data, args.split)
+    print((Path(args.run) / f"eval-{args.split}" / "summary.md").read_text())
+    return 0
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="meshsar", description="Build the Cardiac Mesh-SAR dataset.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -81,6 +96,17 @@ def parser() -> argparse.ArgumentParser:
     pv.add_argument("out", help="built dataset folder")
     pv.add_argument("--n", type=int, default=8, help="samples to show (default 8)")
     pv.set_defaults(func=cmd_preview)
+    t = sub.add_parser("train", help="train the reference SAR2Mesh model on a built dataset (resumes a run)")
+    t.add_argument("config", help="trainer config TOML, e.g. manifests/train/default.toml")
+    t.add_argument("--data", required=True, help="built dataset folder")
+    t.add_argument("--split", default="seed-0")
+    t.add_argument("--out", help="run folder (default DATA/runs/<config name>-<split>)")
+    t.set_defaults(func=cmd_train)
+    e = sub.add_parser("evaluate", help="metrics, tables and renders of a trained run on a split")
+    e.add_argument("run", help="run folder")
+    e.add_argument("--data", required=True, help="built dataset folder")
+    e.add_argument("--split", default="seed-0")
+    e.set_defaults(func=cmd_evaluate)
     from .bench import PARTS
 
     be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/")

@@ -1,0 +1,151 @@
+"""SAR2Mesh training losses (DESIGN section 10), as plain functions of tensors.
+
+Geometric losses take coordinates in any length unit; the trainer passes them
+divided by fov/2 so that the squared-length terms are O(1e-3) and the default
+weights [0.3, 0.05, 0.46, 0.16] (Chamfer, Laplacian, edge length, normal
+consistency) balance. Topology helpers (edges, adjacent face pairs) are numpy,
+computed once per template level.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .radar import RadarParams
+from .radar_torch import echo_torch
+
+RADAR_MODES = ("raw", "profile")
+
+
+# ---------------------------------------------------------------- topology
+
+
+def mesh_edges(faces: np.ndarray) -> np.ndarray:
+    """(E, 2) int64 undirected edges of a triangle mesh, each once, smaller index first, sorted."""
+    faces = np.asarray(faces, dtype=np.int64)
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return np.unique(pairs, axis=0)
+
+
+def adjacent_face_pairs(faces: np.ndarray) -> np.ndarray:
+    """(P, 2) int64 pairs of faces sharing an edge (edges with exactly two faces; boundary edges skipped)."""
+    faces = np.asarray(faces, dtype=np.int64)
+    pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(len(faces)), 3)
+    _, edge_id, counts = np.unique(pairs, axis=0, return_inverse=True, return_counts=True)
+    edge_id = edge_id.reshape(-1)
+    order = np.argsort(edge_id, kind="stable")
+    shared = counts[edge_id[order]] == 2
+    return owner[order][shared].reshape(-1, 2)
+
+
+def neighbour_mean(values: torch.Tensor, edges: torch.Tensor, n_vertices: int) -> torch.Tensor:
+    """Mean over each vertex's mesh neighbours: values (..., n, F) -> (..., n, F).
+
+    edges : (E, 2) undirected edges. Isolated vertices get 0.
+    """
+    src = torch.cat([edges[:, 0], edges[:, 1]])  # (2E,)
+    dst = torch.cat([edges[:, 1], edges[:, 0]])  # (2E,)
+    summed = torch.zeros_like(values).index_add_(-2, dst, values.index_select(-2, src))  # (..., n, F)
+    degree = torch.zeros(n_vertices, dtype=values.dtype, device=values.device).index_add_(
+        0, dst, torch.ones_like(dst, dtype=values.dtype))  # (n,)
+    return summed / degree.clamp_min(1)[:, None]
+
+
+def uniform_laplacian(verts: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Uniform Laplacian coordinates x_i - mean_{j in N(i)} x_j: verts (..., n, 3) -> (..., n, 3)."""
+    return verts - neighbour_mean(verts, edges, verts.shape[-2])
+
+
+def sample_surface(verts: torch.Tensor, faces: torch.Tensor, count: int,
+                   generator: torch.Generator | None = None) -> torch.Tensor:
+    """(count, 3) points uniform by area on a mesh: verts (n, 3), faces (m, 3) long.
+
+    Random numbers are drawn on the CPU (`generator` must be a CPU generator).
+    """
+    tri = verts[faces]  # (m, 3, 3)
+    area = torch.linalg.vector_norm(torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1), dim=-1)  # (m,)
+    pick = torch.multinomial(area.detach().cpu().double(), count, replacement=True, generator=generator)  # (count,)
+    r = torch.rand(count, 2, generator=generator, dtype=torch.float64)  # (count, 2)
+    # Folding the unit square's upper triangle onto the lower keeps the density uniform.
+    r = torch.where(r.sum(1, keepdim=True) > 1, 1 - r, r).to(verts)
+    chosen = tri[pick.to(verts.device)]  # (count, 3, 3)
+    return chosen[:, 0] + r[:, :1] * (chosen[:, 1] - chosen[:, 0]) + r[:, 1:] * (chosen[:, 2] - chosen[:, 0])
+
+
+# ---------------------------------------------------------------- geometric losses
+
+
+def chamfer(points: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Symmetric Chamfer distance, squared: mean_p min_q |p-q|^2 + mean_q min_p |p-q|^2.
+
+    points (N, 3), target (M, 3) -> scalar.
+    """
+    d2 = torch.cdist(points, target).square()  # (N, M)
+    return d2.min(dim=1).values.mean() + d2.min(dim=0).values.mean()
+
+
+def laplacian_loss(verts: torch.Tensor, reference: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """mean_i |L(verts)_i - L(reference)_i|^2, the change of uniform Laplacian coordinates (Pixel2Mesh).
+
+    verts, reference (..., n, 3) (reference: the mesh before the deformation); edges (E, 2) -> scalar.
+    """
+    change = uniform_laplacian(verts, edges) - uniform_laplacian(reference, edges)  # (..., n, 3)
+    return change.square().sum(-1).mean()
+
+
+def edge_loss(verts: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Mean squared edge length: verts (..., n, 3), edges (E, 2) -> scalar."""
+    vectors = verts[..., edges[:, 1], :] - verts[..., edges[:, 0], :]  # (..., E, 3)
+    return vectors.square().sum(-1).mean()
+
+
+def face_normals(verts: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Unit face normals (..., m, 3) of verts (..., n, 3), faces (m, 3)."""
+    tri = verts[..., faces, :]  # (..., m, 3, 3)
+    cross = torch.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :], dim=-1)
+    return cross / torch.linalg.vector_norm(cross, dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def normal_consistency(verts: torch.Tensor, faces: torch.Tensor, face_pairs: torch.Tensor) -> torch.Tensor:
+    """Mean over faces sharing an edge of 1 - cos(angle between their normals).
+
+    verts (..., n, 3), faces (m, 3), face_pairs (P, 2) -> scalar.
+    """
+    normals = face_normals(verts, faces)  # (..., m, 3)
+    cos = (normals[..., face_pairs[:, 0], :] * normals[..., face_pairs[:, 1], :]).sum(-1)  # (..., P)
+    return (1 - cos).mean()
+
+
+# ---------------------------------------------------------------- radar loss
+
+
+def range_profile(echo: torch.Tensor) -> torch.Tensor:
+    """|IFFT over frequency| of an echo (..., Ef) complex -> (..., Ef) real: reflectivity per range bin."""
+    return torch.fft.ifft(echo, dim=-1).abs()
+
+
+def radar_loss(verts: torch.Tensor, faces: torch.Tensor, echo: torch.Tensor, positions: np.ndarray,
+               centres: np.ndarray, freqs: np.ndarray, radar: RadarParams, mode: str = "profile",
+               beta: float = 10.0) -> torch.Tensor:
+    """L1 between the differentiable echo of a mesh and a stored echo, relative to the stored one.
+
+    verts (B, n, 3) mm, heart frame; faces (m, 3) long; echo (B, V, M, Ef) complex,
+    the stored echo at `positions` (V, M, 3) mm; centres (V, 3) mm, each view's
+    aperture centre (soft visibility looks there); freqs (Ef,) Hz. The arrays are
+    numpy (echo_torch moves them to verts' device and precision).
+    mode "raw": mean |s_pred - s| / mean |s| (the paper's loss; phases wrap every
+    lambda/2 of range). "profile": the same on |IFFT_f s|, range profiles, which
+    only move by a range bin (c/2B) per c/2B of displacement. Mean over views.
+    """
+    if mode not in RADAR_MODES:
+        raise ValueError(f"mode: must be one of {', '.join(RADAR_MODES)}, got {mode!r}")
+    terms = []
+    for v in range(echo.shape[1]):
+        predicted = echo_torch(verts, faces, positions[v], freqs, radar, beta=beta, centre=centres[v])  # (B, M, Ef)
+        target = echo[:, v]  # (B, M, Ef)
+        if mode == "profile":
+            predicted, target = range_profile(predicted), range_profile(target)
+        terms.append((predicted - target).abs().mean() / target.abs().mean().clamp_min(1e-30))
+    return torch.stack(terms).mean()

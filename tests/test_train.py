@@ -1,0 +1,201 @@
+"""Trainer: config validation, overfitting one sample, resuming, DDP on CPU, evaluation of a run."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+torch = pytest.importorskip("torch")
+
+from meshsar_builder import losses as L  # noqa: E402
+from meshsar_builder import radar as R  # noqa: E402
+from meshsar_builder import train as T  # noqa: E402
+from meshsar_builder.errors import RecipeError  # noqa: E402
+from meshsar_builder.io import sha256_file, write_json  # noqa: E402
+from meshsar_builder.radar_torch import echo_torch  # noqa: E402
+from meshsar_builder.sar import ImageParams  # noqa: E402
+from meshsar_builder.shards import INDEX_NAME, Sample, build_index, write_shard  # noqa: E402
+from meshsar_builder.splits import make_split, write_split  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY_RADAR = R.RadarParams(aperture=(8, 8), step_mm=10.0, n_samples=8, echo_decimation=(2, 2, 2))
+TINY_IMAGES = ImageParams(size=32)
+TINY_CONFIG = """
+name = "tiny"
+seed = 3
+[data]
+batch_size = 2
+[model]
+encoder_channels = [4, 8]
+hidden = 16
+blocks = 1
+stage_scales = [[1], [1, 0], [0]]
+template_level = 2
+[loss]
+chamfer_points = 300
+[radar_loss]
+warmup_epochs = 1
+antennas = 4
+[optim]
+lr = 3e-3
+epochs = 2
+"""
+
+
+def make_dataset(root: Path, n: int = 6, shard_size: int = 3) -> Path:
+    """A tiny build folder: ellipsoid meshes, random images, the echo of each mesh, a seed-0 split."""
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    sphere = trimesh.creation.icosphere(2)
+    grid = R.echo_grid(TINY_RADAR)
+    samples = []
+    for i in range(n):
+        verts = (sphere.vertices * rng.uniform(30, 50, 3)).astype(np.float32)
+        echo = np.stack([echo_torch(torch.from_numpy(verts), torch.from_numpy(sphere.faces), grid["positions_mm"][v],
+                                    grid["frequencies_hz"], TINY_RADAR).numpy().reshape(4, 4, 4)
+                         for v in TINY_RADAR.views])
+        samples.append(Sample(
+            sample_id=f"s{i}", verts=verts, faces=sphere.faces, vert_labels=np.zeros(len(verts), np.uint8),
+            sar=rng.random((3, 2, 32, 32)).astype(np.float16), echo=echo, center_mm=np.zeros(3, np.float32),
+            meta={"source": "toy", "subject": f"subj{i}", "subset": "direct"}))
+    shards = []
+    for k in range(0, n, shard_size):
+        file = f"shards/shard-{k // shard_size:05d}.npz"
+        write_shard(root / file, samples[k : k + shard_size])
+        shards.append({"file": file, "n": len(samples[k : k + shard_size]), "sha256": sha256_file(root / file),
+                       "sample_ids": [s.sample_id for s in samples[k : k + shard_size]]})
+    index = build_index(recipe="tiny", recipe_sha256="0" * 64, code_version="test",
+                        metadata=R.index_metadata(TINY_RADAR, TINY_IMAGES), shard_size=shard_size, shards=shards,
+                        metas={s.sample_id: s.meta for s in samples})
+    write_json(root / INDEX_NAME, index)
+    write_split(root, make_split(index, 0, {"train": 2 / 3, "test": 1 / 3}, "sample"))
+    return root
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("tiny"))
+
+
+def test_shipped_configs_parse():
+    default = T.load_config(ROOT / "manifests/train/default.toml")
+    paper = T.load_config(ROOT / "manifests/train/paper.toml")
+    assert paper.optim.lr == 1e-3 and paper.data.batch_size == 1 and paper.optim.epochs == 500
+    assert paper.loss.weights == (0.3, 0.05, 0.46, 0.16)
+    assert paper.radar_loss.weight == 0.1 and paper.radar_loss.warmup_epochs == 20
+    assert default.model.stages == paper.model.stages == 3
+
+
+@pytest.mark.parametrize("text, message", [
+    ('name = "x"\n[model]\nhiden = 3\n', "unknown key 'hiden'"),
+    ('name = "x"\n[optim]\nlr = "fast"\n', "[optim] lr: expected a number"),
+    ('name = "x"\n[radar_loss]\nmode = "phase"\n', "mode: must be one of"),
+    ('name = "x"\nepochs = 3\n', "unknown key 'epochs'"),
+])
+def test_bad_configs_name_the_file_and_key(text, message):
+    with pytest.raises(RecipeError, match="cfg.toml") as info:
+        T.parse_config(text, "cfg.toml")
+    assert message in str(info.value)
+
+
+def test_resume_matches_an_uninterrupted_run(tiny_data, tmp_path):
+    config = T.parse_config(TINY_CONFIG)
+    whole = T.train(config, tiny_data, out=tmp_path / "whole", progress=False)
+    first = T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1")), tiny_data,
+                    out=tmp_path / "part", progress=False)
+    assert len(first.log) == 1
+    # Same config text as the uninterrupted run, so the folder's checkpoint is accepted and resumed.
+    state = T.load_checkpoint(tmp_path / "part" / T.CHECKPOINT)
+    state["config_text"] = config.text
+    T.save_checkpoint(tmp_path / "part" / T.CHECKPOINT, state)
+    resumed = T.train(config, tiny_data, out=tmp_path / "part", progress=False)
+    assert [row["epoch"] for row in resumed.log] == [0, 1]
+    assert resumed.log[1]["radar"] > 0  # the radar term is on after the 1-epoch warm-up
+    assert resumed.log[1]["total"] == pytest.approx(whole.log[1]["total"], rel=1e-6)
+    for a, b in zip(whole.model.state_dict().values(), resumed.model.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+    assert T.read_log(tmp_path / "part" / T.LOG) == resumed.log
+
+
+def test_a_run_refuses_another_config(tiny_data, tmp_path):
+    T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1")), tiny_data, out=tmp_path, progress=False)
+    with pytest.raises(T.InputError, match="different config"):
+        T.train(T.parse_config(TINY_CONFIG), tiny_data, out=tmp_path, progress=False)
+
+
+def _ddp_worker(rank: int, world: int, port: int, data: str, out: str) -> None:
+    import os
+
+    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    torch.set_num_threads(1)
+    config = T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1").replace("batch_size = 2", "batch_size = 1"))
+    result = T.train(config, data, out=Path(out) / "run", progress=False)
+    flat = torch.cat([p.detach().flatten() for p in result.model.parameters()])
+    torch.save({"params": flat, "steps": result.log[0]["steps"]}, Path(out) / f"rank{rank}.pt")
+    torch.distributed.destroy_process_group()
+
+
+@pytest.mark.slow
+def test_two_process_ddp_keeps_ranks_equal(tiny_data, tmp_path):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    torch.multiprocessing.spawn(_ddp_worker, args=(2, port, str(tiny_data), str(tmp_path)), nprocs=2)
+    ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2)]
+    assert ranks[0]["steps"] >= 1 and ranks[0]["steps"] == ranks[1]["steps"]
+    torch.testing.assert_close(ranks[0]["params"], ranks[1]["params"], rtol=0, atol=0)
+    initial = T.build_model(T.parse_config(TINY_CONFIG), T.load_checkpoint(tmp_path / "run" / T.CHECKPOINT)["info"])
+    assert not torch.equal(torch.cat([p.flatten() for p in initial.parameters()]), ranks[0]["params"])
+
+
+@pytest.mark.slow
+def test_overfits_one_sample(tiny_data):
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    # Level 3 (42 -> 162 -> 642 vertices): on a 12-vertex first stage the edge-length term
+    # (mean squared edge, ~R^2 / n) would outweigh the Chamfer distance.
+    config = T.parse_config(TINY_CONFIG.replace("template_level = 2", "template_level = 3"))
+    index = T.read_index(tiny_data)
+    geometry = T.DatasetGeometry.from_index(index)
+    dataset = T.MeshSARDataset(tiny_data, "train")
+    sample = dataset[0]
+    model = T.build_model(config, {"frames": geometry.frames, "fov_mm": geometry.fov_mm, "channels": ["intensity", "depth"],
+                                   "template_radius_mm": 40.0})
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    batch = T.collate_meshes([sample])
+    curve = []
+    for step in range(300):
+        meshes = model(batch["sar"])
+        terms = T.batch_losses(meshes, model, batch, geometry, config, 0.0, T.step_generator(0, 0, step, 0))
+        optimizer.zero_grad()
+        terms["total"].backward()
+        optimizer.step()
+        if step % 25 and step != 299:
+            continue
+        with torch.no_grad():
+            # Surface to surface, so the vertex spacing (~5 mm at 642 vertices) sets no floor.
+            generator = torch.Generator().manual_seed(1)
+            final = L.sample_surface(meshes[-1][1][0], model.topology()["faces"], 4000, generator)
+            truth = L.sample_surface(batch["verts"][0], batch["faces"][0], 4000, generator)
+            curve.append(L.chamfer(final, truth).item())
+    assert max(curve[-3:]) < curve[0] / 10, curve
+
+
+@pytest.mark.slow
+def test_evaluate_writes_metrics_tables_and_renders(tiny_data, tmp_path):
+    from meshsar_builder.evaluate import COLUMNS, evaluate
+
+    T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1")), tiny_data, out=tmp_path, progress=False)
+    summary = evaluate(tmp_path, tiny_data, renders=1, samples=2000, progress=False)
+    out = tmp_path / "eval-seed-0"
+    for name in ("metrics.csv", "summary.md", "summary.json", "renders.png"):
+        assert (out / name).exists(), name
+    assert set(summary) == {"toy", "all"} and set(summary["all"]) == {"sar2mesh", "template"}
+    table = (out / "summary.md").read_text()
+    assert table.index("dice") < table.index("assd_mm") < table.index("hd_mm") < table.index("si_pct")
+    assert all(np.isfinite(summary["all"]["sar2mesh"][c][0]) for c in COLUMNS)
