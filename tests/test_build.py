@@ -135,3 +135,20 @@ def test_smoke_recipe_meshes_are_closed_and_same_with_two_workers(tmp_path):
         a = {p.relative_to(one / stage): p.read_bytes() for p in (one / stage).rglob("*") if p.is_file() and p.suffix != ".json"}
         b = {p.relative_to(two / stage): p.read_bytes() for p in (two / stage).rglob("*") if p.is_file() and p.suffix != ".json"}
         assert a == b
+
+
+def test_lost_outputs_are_rebuilt_and_a_removed_source_is_named(tmp_path, tmp_recipe):
+    data = nifti_folder(tmp_path / "data", n_good=1)
+    recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.0))
+    out = tmp_path / "out"
+    assert build(R.load(recipe), out, until="remesh").failures == []
+    (out / "meshes" / "nifti-good0.ply").unlink()  # an upstream output lost: rebuilt, to the same bytes,
+    (out / "meshes" / "nifti-good0.json").unlink()  # so remesh stays up to date
+    again = build(R.load(recipe), out, until="remesh")
+    assert again.failures == [] and [r["ran"] for r in again.summary] == [0, 1, 0]
+    mesh_sidecar = out / "meshes" / "nifti-good0.json"
+    mesh_sidecar.unlink()
+    (out / "meshes" / "nifti-good0.ply").unlink()
+    (data / "good0.nii.gz").unlink()  # now the source itself is gone
+    r = build(R.load(recipe), out, until="remesh")
+    assert [f["item"] for f in r.failures] == ["nifti"] and "no *.nii or *.nii.gz files" in r.failures[0]["message"]
