@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -15,7 +16,8 @@ def cmd_build(args: argparse.Namespace) -> int:
 
     recipe = recipe_mod.load(args.recipe)
     out = Path(args.out) if args.out else Path("build") / recipe.name
-    results = build(recipe, out, workers=args.workers, until=args.until, force=tuple(args.force))
+    results = build(recipe, out, workers=args.workers, until=args.until, force=tuple(args.force),
+                    scheduler=args.scheduler)
     print(format_summary(results))
     print(f"\noutput: {out}")
     return 1 if results.failures else 0
@@ -81,6 +83,9 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("recipe", help="recipe TOML, e.g. manifests/demo.toml")
     b.add_argument("--out", help="output folder (default build/<recipe name>)")
     b.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    b.add_argument("--scheduler", metavar="ADDR", default=os.environ.get("MESHSAR_SCHEDULER") or None,
+                   help="run items on a Dask cluster: tcp://HOST:PORT, or local:N for a LocalCluster of N "
+                        "worker processes (default $MESHSAR_SCHEDULER; unset: local processes)")
     b.add_argument("--until", metavar="STAGE", help="stop after this stage")
     b.add_argument("--force", metavar="STAGE", action="append", default=[], help="rerun every item of STAGE (repeatable)")
     b.set_defaults(func=cmd_build)

@@ -167,14 +167,85 @@ def run_item(ctx: Context, stage: Stage, item: Item) -> tuple[dict | None, dict 
         }
 
 
-def _make_pool(workers: int) -> cf.Executor | None:
-    if workers <= 1:
-        return None
-    # spawn: Embree, BLAS and torch threads do not survive fork reliably
-    return cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+class LocalPool:
+    """Local worker processes (spawn: Embree, BLAS and torch threads do not survive fork reliably)."""
+
+    def __init__(self, workers: int):
+        self.executor = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+        self.slots = 2 * workers
+
+    def submit(self, fn, *args):
+        return self.executor.submit(fn, *args)
+
+    def wait(self, futures: set) -> tuple[set, set]:
+        return cf.wait(futures, return_when=cf.FIRST_COMPLETED)
+
+    def close(self) -> None:
+        self.executor.shutdown(cancel_futures=True)
 
 
-def run_stage(ctx: Context, stage: Stage, results: Results, pool: cf.Executor | None, force: bool = False) -> dict:
+class DaskPool:
+    """Items as Dask tasks: a scheduler address (tcp://HOST:PORT) or `local:N` for a LocalCluster.
+
+    Workers must import this project (same version) and see the build folder at the
+    same path (a shared filesystem). A task whose worker dies is rerun by Dask on
+    another worker; writes are atomic, so a rerun leaves no duplicate or partial file.
+    """
+
+    def __init__(self, scheduler: str):
+        from distributed import Client, LocalCluster
+
+        if scheduler.startswith("local:"):
+            n = int(scheduler.split(":", 1)[1])
+            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                        dashboard_address=None)
+            self.client = Client(self.cluster)
+        else:
+            self.cluster = None
+            self.client = Client(scheduler, timeout="30s")
+        self.slots = 2 * max(1, sum(self.client.nthreads().values()))
+
+    def submit(self, fn, *args):
+        return self.client.submit(fn, *args, pure=False)
+
+    def wait(self, futures: set) -> tuple[set, set]:
+        from distributed import wait
+
+        done, pending = wait(list(futures), return_when="FIRST_COMPLETED")
+        return set(done), set(pending)
+
+    def close(self) -> None:
+        self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+
+def make_pool(workers: int = 1, scheduler: str | None = None) -> LocalPool | DaskPool | None:
+    """None (run items in this process), a local process pool, or a Dask client."""
+    if scheduler:
+        return DaskPool(scheduler)
+    return LocalPool(workers) if workers > 1 else None
+
+
+def _outcomes(ctx: Context, stage: Stage, todo: list[Item], pool):
+    """Run items, yielding (record, failure) as they finish; at most pool.slots in flight."""
+    if pool is None:
+        yield from (run_item(ctx, stage, it) for it in todo)
+        return
+    queue, pending = iter(todo), set()
+    while True:
+        for item in queue:
+            pending.add(pool.submit(run_item, ctx, stage, item))
+            if len(pending) >= pool.slots:
+                break
+        if not pending:
+            return
+        done, pending = pool.wait(pending)
+        for future in done:
+            yield future.result()
+
+
+def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bool = False) -> dict:
     """Plan a stage, skip what is up to date, run the rest; return its summary row."""
     t0 = time.perf_counter()
     stage_dir = ctx.stage_dir(stage.name)
@@ -193,12 +264,7 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool: cf.Executor | 
             done[it.id] = rec
     failed = []
     bar = tqdm(total=len(todo), desc=f"{stage.name:>8}", unit="item", disable=not todo, file=sys.stderr)
-    if pool is None:
-        outcomes = (run_item(ctx, stage, it) for it in todo)
-    else:
-        futures = [pool.submit(run_item, ctx, stage, it) for it in todo]
-        outcomes = (f.result() for f in cf.as_completed(futures))
-    for rec, fail in outcomes:
+    for rec, fail in _outcomes(ctx, stage, todo, pool):
         bar.update(1)
         if rec is not None:
             done[rec["item"]] = rec
@@ -206,6 +272,7 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool: cf.Executor | 
             failed.append(fail)
             bar.write(f"FAILED {stage.name}/{fail['item']}: {fail['error']}: {fail['message']}")
     bar.close()
+    remove_stale_temporaries(stage_dir)  # a worker killed mid-write (its item was rerun) leaves one
     # Keep plan order, so later stages see items in the same order whatever finished first.
     results.done[stage.name] = {i: done[i] for i in ids if i in done}
     if stage.finish is not None:
@@ -227,8 +294,13 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool: cf.Executor | 
     return row
 
 
-def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None, force: tuple[str, ...] = ()) -> Results:
-    """Run the registered stages in order up to `until`; write failures.json and the recipe copy."""
+def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None, force: tuple[str, ...] = (),
+          scheduler: str | None = None) -> Results:
+    """Run the registered stages in order up to `until`; write failures.json and the recipe copy.
+
+    Items run in this process (workers=1), on `workers` local processes, or on a
+    Dask cluster (`scheduler`), with the same outputs byte for byte.
+    """
     stages = available_stages()
     for name in (until, *force):
         if name is not None and name not in stages:
@@ -237,7 +309,7 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
     write_bytes(out / "recipe.toml", recipe.text.encode("utf-8"))
     ctx = Context(out=out, recipe=recipe)
     results = Results()
-    pool = _make_pool(workers)
+    pool = make_pool(workers, scheduler)
     try:
         for name, stage in stages.items():
             run_stage(ctx, stage, results, pool, force=name in force)
@@ -245,7 +317,7 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
                 break
     finally:
         if pool is not None:
-            pool.shutdown(cancel_futures=True)
+            pool.close()
     write_json(out / "failures.json", results.failures)
     return results
 
