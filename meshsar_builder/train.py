@@ -42,7 +42,9 @@ from .shards import read_index
 CHECKPOINT = "checkpoint.pt"
 LOG = "log.csv"
 LOSS_TERMS = ("chamfer", "laplacian", "edge", "normal")
-LOG_COLUMNS = ("epoch", "steps", "total", *LOSS_TERMS, "radar", "radar_weight", "lr", "seconds")
+LOG_COLUMNS = ("epoch", "steps", "total", *LOSS_TERMS, "radar", "radar_l1", "radar_weight", "lr", "seconds")
+RADAR_BALANCES = ("gradient", "none")
+LR_SCHEDULES = ("constant", "cosine")
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,13 @@ class RadarLossConfig:
 
     weight: float = 0.1  # 0: the no-radar-loss ablation
     warmup_epochs: int = 20  # the weight is 0 before this epoch
+    ramp_epochs: int = 0  # then rises linearly to `weight` over this many epochs (0: at once)
+    # gradient: the radar term's gradient on the compared mesh is rescaled, per step, to `weight`
+    # times the norm of the geometric terms' gradient there; its logged value is rescaled alike
+    # (radar_l1 logs the plain relative L1). The echo's phase makes the plain term's vertex
+    # gradients ~200x the geometric ones (measured on the demo set: 2e-2 vs 8e-5 per vertex at
+    # weight 0.1), so without this any useful weight swamps Chamfer. none: weight x relative L1.
+    balance: str = "gradient"
     # profile: |IFFT over frequency|; raw: the complex signal (paper). Measured on a 2,562-vertex
     # ellipsoid against its Embree echo: raw jumps 0.65 -> 1.95 within 1 mm (phase wraps), profile
     # varies smoothly with its minimum within 2 mm and a basin of about -8..+4 mm.
@@ -90,8 +99,10 @@ class RadarLossConfig:
     def __post_init__(self):
         if self.mode not in L.RADAR_MODES:
             raise ValueError(f"mode: must be one of {', '.join(L.RADAR_MODES)}, got {self.mode!r}")
-        if self.weight < 0 or self.warmup_epochs < 0 or self.antennas < 0 or self.beta <= 0:
-            raise ValueError("weight, warmup_epochs, antennas: must be >= 0; beta: > 0")
+        if self.balance not in RADAR_BALANCES:
+            raise ValueError(f"balance: must be one of {', '.join(RADAR_BALANCES)}, got {self.balance!r}")
+        if self.weight < 0 or self.warmup_epochs < 0 or self.ramp_epochs < 0 or self.antennas < 0 or self.beta <= 0:
+            raise ValueError("weight, warmup_epochs, ramp_epochs, antennas: must be >= 0; beta: > 0")
 
 
 @dataclass(frozen=True)
@@ -100,10 +111,16 @@ class OptimConfig:
 
     lr: float = 1e-3
     epochs: int = 500
+    schedule: str = "constant"  # constant | cosine (per epoch, from lr down to lr * final_lr)
+    final_lr: float = 0.0  # cosine: the last epoch's lr as a fraction of lr
 
     def __post_init__(self):
         if not self.lr > 0 or self.epochs < 1:
             raise ValueError(f"lr/epochs: need > 0 / >= 1, got {self.lr}, {self.epochs}")
+        if self.schedule not in LR_SCHEDULES:
+            raise ValueError(f"schedule: must be one of {', '.join(LR_SCHEDULES)}, got {self.schedule!r}")
+        if not 0 <= self.final_lr <= 1:
+            raise ValueError(f"final_lr: need 0..1, got {self.final_lr}")
 
 
 @dataclass(frozen=True)
@@ -255,7 +272,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
     device = meshes[0][1].device
     targets = [L.sample_surface(v.double(), f, config.loss.chamfer_points, generator).float().to(device) / unit
                for v, f in zip(batch["verts"], batch["faces"])]  # B x (P, 3)
-    terms = {name: torch.zeros((), device=device) for name in (*LOSS_TERMS, "radar")}
+    terms = {name: torch.zeros((), device=device) for name in (*LOSS_TERMS, "radar", "radar_l1")}
     for k, (before, after) in enumerate(meshes):
         topo = model.topology(k)
         before, after = before.float().detach() / unit, after.float() / unit  # (B, n_k, 3)
@@ -273,16 +290,49 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
         if 0 < rc.antennas < positions.shape[1]:
             pick = torch.randperm(positions.shape[1], generator=generator)[: rc.antennas].numpy()
             positions, echo = positions[:, pick], echo[:, :, pick]
-        terms["radar"] = radar_weight * L.radar_loss(
-            meshes[rc.stage][1].float(), model.topology(rc.stage)["faces"], echo.to(device), positions,
-            geometry.centres, geometry.freqs, geometry.radar, rc.mode, rc.beta)
-    terms["total"] = sum(terms.values())
+        verts = meshes[rc.stage][1]
+        relative = L.radar_loss(verts.float(), model.topology(rc.stage)["faces"], echo.to(device), positions,
+                                geometry.centres, geometry.freqs, geometry.radar, rc.mode, rc.beta)
+        terms["radar_l1"] = relative.detach()
+        if rc.balance == "gradient" and torch.is_grad_enabled() and verts.requires_grad:
+            terms["radar"] = radar_weight * balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
+        else:
+            terms["radar"] = radar_weight * relative
+    terms["total"] = sum(terms[name] for name in (*LOSS_TERMS, "radar"))
     return terms
 
 
+def balanced(radar: torch.Tensor, geometric: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:
+    """The radar term rescaled so that its gradient on `verts` has the norm of the geometric terms' there.
+
+    Returns s * radar in value and gradient, s = |d geometric/d verts| / |d radar/d verts| held
+    constant. The radar graph is walked once: its vertex gradient is carried into the network by
+    a linear surrogate (zero in value), so backward does not recompute the echo.
+    """
+    g_radar, = torch.autograd.grad(radar, verts)
+    g_geometric, = torch.autograd.grad(geometric, verts, retain_graph=True, allow_unused=True)
+    if g_geometric is None:
+        return radar.detach() * 0
+    scale = g_geometric.norm() / g_radar.norm().clamp_min(1e-30)
+    surrogate = (verts * (scale * g_radar).to(verts.dtype)).sum()
+    return scale * radar.detach() + (surrogate - surrogate.detach())
+
+
 def radar_weight_at(config: TrainConfig, epoch: int) -> float:
-    """The radar loss weight of an epoch (0-based): 0 during the warm-up."""
-    return config.radar_loss.weight if epoch >= config.radar_loss.warmup_epochs else 0.0
+    """The radar loss weight of an epoch (0-based): 0 during the warm-up, then a linear ramp over ramp_epochs."""
+    rc = config.radar_loss
+    if epoch < rc.warmup_epochs:
+        return 0.0
+    return rc.weight * min(1.0, (epoch - rc.warmup_epochs + 1) / (rc.ramp_epochs + 1))
+
+
+def lr_at(config: TrainConfig, epoch: int) -> float:
+    """The learning rate of an epoch (0-based) under [optim] schedule."""
+    oc = config.optim
+    if oc.schedule == "constant" or oc.epochs == 1:
+        return oc.lr
+    progress = epoch / (oc.epochs - 1)
+    return oc.lr * (oc.final_lr + (1 - oc.final_lr) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
 # ---------------------------------------------------------------- distribution and devices
@@ -370,7 +420,9 @@ def read_log(path: Path) -> list[dict]:
     if not path.exists():
         return []
     with open(path, newline="", encoding="utf-8") as f:
-        return [{k: (int(v) if k in ("epoch", "steps") else float(v)) for k, v in row.items()} for row in csv.DictReader(f)]
+        # Columns a log written by an older version lacks read as 0.
+        return [{k: (int(v) if k in ("epoch", "steps") else float(v or 0)) for k, v in row.items()}
+                for row in csv.DictReader(f, restval="")]
 
 
 # ---------------------------------------------------------------- training
@@ -439,7 +491,10 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         dataset.set_epoch(epoch)
         steps = steps_this_epoch(dataset, config.data.batch_size, config.data.workers, rank, world)
         radar_weight = radar_weight_at(config, epoch)
-        sums = torch.zeros(len(LOSS_TERMS) + 2, dtype=torch.float64)  # terms, radar, total
+        lr = lr_at(config, epoch)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        sums = torch.zeros(len(LOSS_TERMS) + 3, dtype=torch.float64)  # terms, radar, radar_l1, total
         model.train()
         for step, batch in zip(range(steps), loader):
             sar = batch["sar"][:, geometry.view_index].to(device)  # (B, V, C, H, W)
@@ -451,10 +506,11 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
             scaler.scale(terms["total"]).backward()
             scaler.step(optimizer)
             scaler.update()
-            sums += torch.tensor([terms[k].item() for k in (*LOSS_TERMS, "radar", "total")], dtype=torch.float64)
+            sums += torch.tensor([terms[k].item() for k in (*LOSS_TERMS, "radar", "radar_l1", "total")],
+                                 dtype=torch.float64)
         means = all_reduce(sums) / max(1, steps * world)
-        row = {"epoch": epoch, "steps": steps, **dict(zip((*LOSS_TERMS, "radar", "total"), means.tolist())),
-               "radar_weight": radar_weight, "lr": config.optim.lr, "seconds": time.perf_counter() - began}
+        row = {"epoch": epoch, "steps": steps, **dict(zip((*LOSS_TERMS, "radar", "radar_l1", "total"), means.tolist())),
+               "radar_weight": radar_weight, "lr": lr, "seconds": time.perf_counter() - began}
         log.append(row)
         bar.set_postfix(loss=f"{row['total']:.4g}", chamfer=f"{row['chamfer']:.3g}")
         bar.update()

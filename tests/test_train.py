@@ -94,12 +94,42 @@ def test_shipped_configs_parse():
     ('name = "x"\n[model]\nhiden = 3\n', "unknown key 'hiden'"),
     ('name = "x"\n[optim]\nlr = "fast"\n', "[optim] lr: expected a number"),
     ('name = "x"\n[radar_loss]\nmode = "phase"\n', "mode: must be one of"),
+    ('name = "x"\n[radar_loss]\nbalance = "magic"\n', "balance: must be one of"),
+    ('name = "x"\n[optim]\nschedule = "step"\n', "schedule: must be one of"),
     ('name = "x"\nepochs = 3\n', "unknown key 'epochs'"),
 ])
 def test_bad_configs_name_the_file_and_key(text, message):
     with pytest.raises(RecipeError, match="cfg.toml") as info:
         T.parse_config(text, "cfg.toml")
     assert message in str(info.value)
+
+
+def test_radar_weight_ramps_in_and_lr_follows_the_schedule():
+    config = T.parse_config('name = "x"\n[radar_loss]\nweight = 0.2\nwarmup_epochs = 3\nramp_epochs = 3\n'
+                            '[optim]\nlr = 1e-3\nepochs = 11\nschedule = "cosine"\nfinal_lr = 0.1\n')
+    assert [T.radar_weight_at(config, e) for e in range(8)] == pytest.approx([0, 0, 0, 0.05, 0.1, 0.15, 0.2, 0.2])
+    assert T.lr_at(config, 0) == pytest.approx(1e-3) and T.lr_at(config, 10) == pytest.approx(1e-4)
+    assert T.lr_at(config, 5) == pytest.approx(0.55e-3)
+    constant = T.parse_config('name = "x"\n[optim]\nlr = 2e-3\nepochs = 4\n')
+    assert [T.lr_at(constant, e) for e in range(4)] == [2e-3] * 4
+
+
+def test_balanced_radar_term_has_the_geometric_gradient_norm():
+    torch.manual_seed(0)
+    leaf = torch.randn(2, 5, 3, dtype=torch.float64, requires_grad=True)
+    verts = 2 * leaf  # not a leaf, as the model's output
+    geometric = 1e-3 * verts.square().sum()
+    radar = (verts.sin() * 40).abs().sum()
+    g_geo, = torch.autograd.grad(geometric, verts, retain_graph=True)
+    g_radar, = torch.autograd.grad(radar, verts, retain_graph=True)
+    term = T.balanced(radar, geometric, verts)
+    g_term, = torch.autograd.grad(term, verts, retain_graph=True)
+    scale = g_geo.norm() / g_radar.norm()
+    torch.testing.assert_close(g_term, scale * g_radar)
+    assert g_term.norm().item() == pytest.approx(g_geo.norm().item())
+    assert term.item() == pytest.approx((scale * radar).item())
+    g_leaf, = torch.autograd.grad(geometric + term, leaf)  # reaches the parameters through the surrogate
+    torch.testing.assert_close(g_leaf, 2 * (g_geo + scale * g_radar))
 
 
 def test_resume_matches_an_uninterrupted_run(tiny_data, tmp_path):
