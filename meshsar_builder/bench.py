@@ -7,7 +7,8 @@ Parts:
 - geometry: seconds per subject for meshing, remeshing and registration, and
   ms per SSM sample, at the demo recipe's settings on demo phantoms;
 - pipeline: the demo recipe's settings with fewer items, built with 1 and 2
-  workers: seconds per sample per stage, peak memory, scaling;
+  workers on the local pool and on a Dask LocalCluster: seconds per sample
+  per stage, samples per minute, peak memory, scaling efficiency;
 - trainer: ms per training step on the CPU at the default and paper sizes (bench_trainer).
 Every part runs its measurements with one BLAS thread, like the stages do.
 """
@@ -134,20 +135,27 @@ PEAK_RSS = (
 )
 
 
-def bench_pipeline(out: Path, workers: tuple[int, ...] = (1, 2)) -> dict:
-    """The demo's settings on 4 whole-heart subjects, 8 SSM samples and 4 frames, with 1 and 2 workers.
+# (name, extra `meshsar build` arguments): the local pool and a Dask LocalCluster, 1 and 2 workers.
+PIPELINE_RUNS = (
+    ("local-1", ["--workers", "1"]), ("local-2", ["--workers", "2"]),
+    ("dask-1", ["--scheduler", "local:1"]), ("dask-2", ["--scheduler", "local:2"]),
+)
 
-    Each build runs as its own `meshsar build` process; peak memory is the
-    largest resident set of that process and its workers.
+
+def bench_pipeline(out: Path, runs: tuple = PIPELINE_RUNS) -> dict:
+    """The demo's settings on 4 whole-heart subjects, 8 SSM samples and 4 frames, local pool and Dask.
+
+    Each build runs from scratch as its own `meshsar build` process; peak
+    memory is the largest resident set among that process and its workers.
+    Scaling efficiency of a backend = (1-worker time / 2-worker time) / 2.
     """
-    runs = {}
+    measured = {}
     with tempfile.TemporaryDirectory() as tmp:
         recipe = Path(tmp) / "bench.toml"
         recipe.write_text(PIPELINE_RECIPE)
-        for n in workers:
-            build_dir = Path(tmp) / f"w{n}"
-            build = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(build_dir),
-                     "--workers", str(n)]
+        for name, args in runs:
+            build_dir = Path(tmp) / name
+            build = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(build_dir), *args]
             t0 = time.perf_counter()
             # A wrapper process waits for the build, so its children's peak RSS is this build's alone.
             peak_kb = subprocess.run([sys.executable, "-c", PEAK_RSS, *build], check=True, capture_output=True,
@@ -155,17 +163,19 @@ def bench_pipeline(out: Path, workers: tuple[int, ...] = (1, 2)) -> dict:
             wall = time.perf_counter() - t0
             per_stage = {}
             for stage_dir in sorted(p for p in build_dir.iterdir() if p.is_dir()):
-                secs = [read_json(p)["seconds"] for p in stage_dir.glob("*.json") if "seconds" in read_json(p)]
+                secs = [rec["seconds"] for rec in map(read_json, stage_dir.glob("*.json")) if "seconds" in rec]
                 if secs:
                     per_stage[stage_dir.name] = {"items": len(secs), "seconds_per_item": float(np.mean(secs))}
             samples = read_json(build_dir / "index.json")["n_samples"]
-            runs[str(n)] = {"wall_seconds": wall, "samples": samples, "seconds_per_sample": wall / samples,
-                            "peak_rss_mb_largest_process": int(peak_kb) / 1024, "stages": per_stage}
-    result = {"recipe": "demo settings; " + " ".join(PIPELINE_RECIPE.split()), "runs": runs}
-    if "1" in runs and "2" in runs:
-        speedup = runs["1"]["wall_seconds"] / runs["2"]["wall_seconds"]
-        result["speedup_2_workers"] = speedup
-        result["scaling_efficiency_2_workers"] = speedup / 2
+            measured[name] = {"wall_seconds": wall, "samples": samples, "seconds_per_sample": wall / samples,
+                              "samples_per_minute": 60 * samples / wall,
+                              "peak_rss_mb_largest_process": int(peak_kb) / 1024, "stages": per_stage}
+    result = {"recipe": "demo settings; " + " ".join(PIPELINE_RECIPE.split()), "runs": measured, "scaling": {}}
+    for backend in ("local", "dask"):
+        one, two = measured.get(f"{backend}-1"), measured.get(f"{backend}-2")
+        if one and two:
+            speedup = one["wall_seconds"] / two["wall_seconds"]
+            result["scaling"][backend] = {"speedup_2_workers": speedup, "efficiency_2_workers": speedup / 2}
     write_json(out / "pipeline.json", result)
     return result
 
