@@ -247,16 +247,29 @@ def build(cls: type, table: Any, where: str) -> Any:
         raise RecipeError(f"{where} {e}") from e
 
 
-def parse(text: str, file: str = "<recipe>") -> Recipe:
-    """Parse and validate recipe TOML text; `file` names it in errors."""
+def parse_toml(text: str, file: str, known: set[str]) -> dict:
+    """TOML text to a table; RecipeError naming `file` for bad TOML or an unknown top-level key."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise RecipeError(f"{file}: not valid TOML ({e})") from e
-    known = {"name", "seed", "sources", *SECTIONS}
     unknown = sorted(set(data) - known)
     if unknown:
         raise RecipeError(f"{file}: unknown key '{unknown[0]}' (known: {', '.join(sorted(known))})")
+    return data
+
+
+def read_text(path: str | os.PathLike, what: str = "recipe") -> str:
+    """A configuration file's text; RecipeError naming it when it cannot be read."""
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise RecipeError(f"{path}: cannot read {what} ({e})") from e
+
+
+def parse(text: str, file: str = "<recipe>") -> Recipe:
+    """Parse and validate recipe TOML text; `file` names it in errors."""
+    data = parse_toml(text, file, {"name", "seed", "sources", *SECTIONS})
     for key in ("name", "sources"):
         if key not in data:
             raise RecipeError(f"{file}: missing required key '{key}'")
@@ -280,9 +293,4 @@ def parse(text: str, file: str = "<recipe>") -> Recipe:
 
 def load(path: str | os.PathLike) -> Recipe:
     """Read and validate a recipe file."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise RecipeError(f"{path}: cannot read recipe ({e})") from e
-    return parse(text, str(path))
+    return parse(read_text(path), str(path))

@@ -35,7 +35,7 @@ from .errors import InputError, RecipeError
 from .io import write_bytes, write_json
 from .model import ModelConfig, SAR2Mesh
 from .radar import RadarParams
-from .recipe import build, tomllib
+from .recipe import build, parse_toml, read_text
 from .seeding import seed_sequence
 from .shards import read_index
 
@@ -171,14 +171,7 @@ def _plain(value):
 
 def parse_config(text: str, file: str = "<config>") -> TrainConfig:
     """Parse and validate trainer-config TOML; RecipeError naming `file` and the key."""
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise RecipeError(f"{file}: not valid TOML ({e})") from e
-    known = {"name", "seed", *TABLES}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise RecipeError(f"{file}: unknown key '{unknown[0]}' (known: {', '.join(sorted(known))})")
+    data = parse_toml(text, file, {"name", "seed", *TABLES})
     if "name" not in data:
         raise RecipeError(f"{file}: missing required key 'name'")
     top = build(TrainConfig, {k: data[k] for k in ("name", "seed") if k in data}, file)
@@ -187,12 +180,7 @@ def parse_config(text: str, file: str = "<config>") -> TrainConfig:
 
 
 def load_config(path: str | os.PathLike) -> TrainConfig:
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as e:
-        raise RecipeError(f"{path}: cannot read trainer config ({e})") from e
-    return parse_config(text, str(path))
+    return parse_config(read_text(path, "trainer config"), str(path))
 
 
 def split_seed(split: str) -> int:
