@@ -153,7 +153,7 @@ def parse_info_cfg(path: Path) -> dict[str, str]:
 def index_acdc(
     root: str | Path, source: str, limit: int | None = None, provenance: str | None = None, subject: str = "*"
 ) -> list[LabelItem]:
-    """ACDC layout: `<root>/**/patientXXX/Info.cfg` and `patientXXX_frameYY_gt.nii.gz`.
+    """ACDC layout: `<root>/**/patientNNN/Info.cfg` and `patientNNN_frameYY_gt.nii.gz`.
 
     Every `_gt` frame present becomes an item. Real ACDC annotates ED and ES
     only, so other frames are recorded as predicted unless `provenance` says
@@ -162,7 +162,7 @@ def index_acdc(
     root = _require_dir(root)
     patients = _first_n([p.parent for p in root.rglob(f"{subject}/Info.cfg")], limit)
     if not patients:
-        raise InputError(f"{root}: no ACDC patient folders (patientXXX/Info.cfg) found")
+        raise InputError(f"{root}: no ACDC patient folders (patientNNN/Info.cfg) found")
     items = []
     for pdir in patients:
         info = parse_info_cfg(pdir / "Info.cfg")

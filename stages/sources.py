@@ -1,8 +1,8 @@
 """Stage `sources`: phantom label maps written (MM-WHS / ACDC layouts), real data folders indexed.
 
 Outputs, per source `<name>`:
-- phantom: `sources/<name>/ct_train_XXXX_label.nii.gz` (whole heart) or
-  `sources/<name>/patientXXX/{Info.cfg, patientXXX_frameYY_gt.nii.gz}` (biventricular),
+- phantom: `sources/<name>/ct_train_NNNN_label.nii.gz` (whole heart) or
+  `sources/<name>/patientNNN/{Info.cfg, patientNNN_frameYY_gt.nii.gz}` (biventricular),
   one item per subject, indexed back through the same loaders as real data;
 - real data: `sources/<name>.index.json`, the list of label maps found.
 Each item's sidecar carries `label_items`, which the `meshes` stage meshes.
