@@ -31,14 +31,6 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
                     "NUMBA_NUM_THREADS")
 
 
-def default_mesh() -> tuple[np.ndarray, np.ndarray]:
-    """A heart-sized closed mesh: ellipsoid 100 x 80 x 120 mm, 6,000 faces."""
-    import trimesh
-
-    mesh = trimesh.creation.uv_sphere(radius=1.0, count=[32, 50])
-    return mesh.vertices * np.array([50.0, 40.0, 60.0]), mesh.faces
-
-
 def _best(function, repeats=REPEATS):
     """(minimum seconds, last result) over repeats."""
     best = np.inf
@@ -129,12 +121,10 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
     }
 
 
-def run(out_dir: Path, verts: np.ndarray | None = None, faces: np.ndarray | None = None) -> dict:
-    """Benchmark the radar on (verts, faces) (default: default_mesh()); writes out_dir/'radar.json'."""
+def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray) -> dict:
+    """Benchmark the radar on a mesh (verts (n, 3) mm heart frame, faces (m, 3)); writes out_dir/'radar.json'."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    if verts is None:
-        verts, faces = default_mesh()
     mesh_path, result_path = out_dir / "radar-bench-mesh.npz", out_dir / "radar.json"
     np.savez(mesh_path, verts=np.asarray(verts, dtype=np.float64), faces=np.asarray(faces, dtype=np.int64))
     env = {**os.environ, **{name: "1" for name in THREAD_VARIABLES}}

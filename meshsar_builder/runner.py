@@ -72,7 +72,7 @@ class Stage:
     run: Callable[[Context, Item], dict]
     # Runs in the main process after every item: for outputs that depend on all items
     # (e.g. an index holding each shard's digest), which no single item can write.
-    finish: Callable[[Context, "Results"], None] | None = None
+    finish: Callable[[Context, "Results"], object] | None = None
 
 
 @dataclass
