@@ -90,6 +90,10 @@ def read_label_map(path: str | Path, table: dict[int, str]) -> tuple[np.ndarray,
     if affine is None or not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-9:
         raise InputError(f"{path}: affine is missing, non-finite or singular")
     try:
+        if path.name.endswith(".gz"):
+            # Decompress the whole stream: gzip checks its CRC and length, so a truncated file
+            # fails here even when the bytes the image needs happen to come before the cut.
+            img = type(img).from_bytes(gzip.decompress(path.read_bytes()))
         img = nib.as_closest_canonical(img)
         data = np.asanyarray(img.dataobj).reshape(img.shape[:3])
     except (OSError, EOFError, zlib.error, gzip.BadGzipFile, ValueError) as e:

@@ -41,8 +41,8 @@ class SSMParams:
     distance_samples: int = 2000
 
     def __post_init__(self) -> None:
-        if self.samples < 0:
-            raise ValueError(f"samples: must be >= 0, got {self.samples}")
+        if self.samples < 1:
+            raise ValueError(f"samples: must be >= 1 (an SSM source with no samples adds nothing to the dataset), got {self.samples}")
         if not 0 < self.variance <= 1:
             raise ValueError(f"variance: must be in (0, 1], got {self.variance}")
         if not self.truncate_sigma > 0:

@@ -9,6 +9,8 @@ import nibabel as nib
 import numpy as np
 import pytest
 
+from .data.make_bad import with_sform
+
 ROOT = Path(__file__).resolve().parents[1]
 MANIFESTS = ROOT / "manifests"
 
@@ -20,17 +22,9 @@ def save_nifti(path: Path, data: np.ndarray, affine: np.ndarray | None = None) -
 
 
 def save_nifti_with_sform(path: Path, data: np.ndarray, sform: np.ndarray) -> Path:
-    """Save, then patch the header's sform in place: nibabel refuses to write NaN or singular affines.
-
-    The NIfTI-1 header keeps qform_code (int16) at byte 252, sform_code at 254 and
-    srow_x/y/z (3 x 4 float32) from byte 280.
-    """
+    """Save with a NaN or singular sform, which nibabel refuses to write (patched into the header)."""
     assert path.suffix == ".nii"
-    save_nifti(path, data)
-    raw = bytearray(path.read_bytes())
-    raw[252:256] = np.array([0, 1], "<i2").tobytes()
-    raw[280:328] = np.asarray(sform[:3], "<f4").tobytes()
-    path.write_bytes(bytes(raw))
+    path.write_bytes(with_sform(nib.Nifti1Image(data, np.eye(4)).to_bytes(), sform))
     return path
 
 

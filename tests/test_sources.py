@@ -13,6 +13,7 @@ from meshsar_builder.sources import (
 )
 
 from .conftest import save_nifti, save_nifti_with_sform
+from .data.make_bad import huge_header
 
 MMWHS_CODES = {205: "myo", 420: "la", 421: "la", 500: "lv", 550: "ra", 600: "rv", 820: "aorta", 850: "pa"}
 
@@ -73,14 +74,8 @@ def test_bad_files_are_named(tmp_path, make, message):
 
 
 def test_enormous_declared_size_is_refused_before_reading(tmp_path):
-    import nibabel as nib
-
-    hdr = nib.Nifti1Header()
-    hdr.set_data_shape((4000, 4000, 4000))
-    hdr.set_data_dtype(np.int16)
     path = tmp_path / "huge_label.nii"
-    with open(path, "wb") as f:  # a header that promises 128 GB, and no data
-        f.write(hdr.binaryblock + b"\x00" * 4)
+    path.write_bytes(huge_header())  # a header that promises 128 GB, and no data
     with pytest.raises(InputError, match="implausible image size"):
         read_label_map(path, MMWHS_TABLE)
 

@@ -161,7 +161,7 @@ def test_specificity_of_model_samples_is_small_and_reported(model, training):
 @pytest.mark.parametrize(
     "field, value",
     [
-        ("samples", -1),
+        ("samples", 0),
         ("variance", 0.0),
         ("variance", 1.5),
         ("truncate_sigma", 0.0),
