@@ -19,7 +19,9 @@ The runner never imports a stage; stages import the library.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import errno
 import multiprocessing
+import os
 import sys
 import time
 import traceback
@@ -35,6 +37,9 @@ from . import __version__
 from .errors import MeshsarError
 from .io import read_json, remove_stale_temporaries, sha256_file, sha256_json, write_bytes, write_json
 from .recipe import Recipe
+
+# A full disk, a read-only or unwritable output folder, an exhausted quota.
+UNWRITABLE = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT}
 
 STAGE_ORDER = ("sources", "meshes", "remesh", "register", "ssm", "radar", "shards", "card")
 
@@ -164,6 +169,7 @@ def run_item(ctx: Context, stage: Stage, item: Item) -> tuple[dict | None, dict 
             "message": str(e),
             "inputs": list(item.inputs),
             "traceback": traceback.format_exc(limit=6),
+            "errno": getattr(e, "errno", None),
         }
 
 
@@ -268,6 +274,12 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bo
         bar.update(1)
         if rec is not None:
             done[rec["item"]] = rec
+        elif fail["errno"] in UNWRITABLE:  # every later item would fail the same way: stop now
+            bar.close()
+            raise MeshsarError(
+                f"{ctx.out}: cannot write outputs ({os.strerror(fail['errno'])}, at {stage.name}/{fail['item']}); "
+                "finished items are kept: free space or fix permissions, then rerun to resume"
+            )
         else:
             failed.append(fail)
             bar.write(f"FAILED {stage.name}/{fail['item']}: {fail['error']}: {fail['message']}")
@@ -305,8 +317,11 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
     for name in (until, *force):
         if name is not None and name not in stages:
             raise MeshsarError(f"unknown stage {name!r}; available: {', '.join(stages)}")
-    out.mkdir(parents=True, exist_ok=True)
-    write_bytes(out / "recipe.toml", recipe.text.encode("utf-8"))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        write_bytes(out / "recipe.toml", recipe.text.encode("utf-8"))
+    except OSError as e:
+        raise MeshsarError(f"{out}: output folder is not writable ({e.strerror})") from e
     ctx = Context(out=out, recipe=recipe)
     results = Results()
     pool = make_pool(workers, scheduler)

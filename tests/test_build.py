@@ -152,3 +152,37 @@ def test_lost_outputs_are_rebuilt_and_a_removed_source_is_named(tmp_path, tmp_re
     (data / "good0.nii.gz").unlink()  # now the source itself is gone
     r = build(R.load(recipe), out, until="remesh")
     assert [f["item"] for f in r.failures] == ["nifti"] and "no *.nii or *.nii.gz files" in r.failures[0]["message"]
+
+
+def test_full_disk_stops_with_a_clear_error_and_keeps_finished_items(tmp_path, tmp_recipe, monkeypatch):
+    import errno
+
+    from meshsar_builder import io as io_mod
+    from meshsar_builder.errors import MeshsarError
+
+    data = nifti_folder(tmp_path / "data", n_good=3)
+    recipe = R.load(tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.0)))
+    out = tmp_path / "out"
+    build(recipe, out, until="meshes")
+    kept = outputs_of(out, "meshes")
+    (out / "meshes" / "nifti-good2.json").unlink()  # one item left to do
+    (out / "meshes" / "nifti-good2.ply").unlink()
+    real_replace = io_mod.os.replace
+
+    def disk_full(suffix):
+        def replace(src, dst):
+            if not str(dst).endswith(suffix):
+                return real_replace(src, dst)
+            raise OSError(errno.ENOSPC, "No space left on device", str(dst))
+        return replace
+
+    monkeypatch.setattr(io_mod.os, "replace", disk_full(""))
+    with pytest.raises(MeshsarError, match=r"out: output folder is not writable \(No space left on device\)"):
+        build(recipe, out, until="meshes")
+    monkeypatch.setattr(io_mod.os, "replace", disk_full(".ply"))
+    with pytest.raises(MeshsarError, match=r"cannot write outputs \(No space left on device, at meshes/nifti-good2\)"):
+        build(recipe, out, until="meshes")
+    monkeypatch.setattr(io_mod.os, "replace", real_replace)
+    assert outputs_of(out, "meshes") == {k: v for k, v in kept.items() if "good2" not in k}
+    assert not [p for p in out.rglob("*") if TMP_MARK in p.name]
+    assert build(recipe, out, until="meshes").failures == [] and outputs_of(out, "meshes") == kept
