@@ -186,3 +186,23 @@ def test_full_disk_stops_with_a_clear_error_and_keeps_finished_items(tmp_path, t
     assert outputs_of(out, "meshes") == {k: v for k, v in kept.items() if "good2" not in k}
     assert not [p for p in out.rglob("*") if TMP_MARK in p.name]
     assert build(recipe, out, until="meshes").failures == [] and outputs_of(out, "meshes") == kept
+
+
+def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, tmp_recipe):
+    data = nifti_folder(tmp_path / "data", n_good=6)
+    recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=0.5))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(out), "--until", "meshes",
+           "--workers", "2"]
+    # Its own session, so the SIGINT reaches the build and its workers as a terminal's Ctrl-C would.
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.time() + 120
+    while not list((out / "meshes").glob("*.json")) and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.01)
+    assert proc.poll() is None, "build finished before it could be interrupted"
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and b"rerun the same command to resume" in err
+    assert not [p for p in out.rglob("*") if TMP_MARK in p.name]
+    resumed = build(R.load(recipe), out, until="meshes")
+    assert resumed.failures == [] and resumed.summary[1]["skipped"] >= 1
