@@ -150,3 +150,67 @@ def transfer_labels(src_verts: np.ndarray, src_labels: np.ndarray, dst_verts: np
     """
     _, nearest = cKDTree(src_verts).query(dst_verts)
     return np.asarray(src_labels, dtype=np.uint8)[nearest]
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("...i,...i->...", a, b)
+
+
+def closest_on_triangles(points: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest point of each triangle to each point, and the squared distance.
+
+    points : (..., 3), tri : (..., 3, 3) corners, broadcast together -> (..., 3), (...,).
+    The projection on the plane when it falls inside the triangle, else the nearest of the
+    closest points on the three edges (degenerate triangles fall through to the edges).
+    """
+    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
+    ab, ac, ap = b - a, c - a, points - a
+    d00, d01, d11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
+    d20, d21 = _dot(ap, ab), _dot(ap, ac)
+    den = d00 * d11 - d01 * d01
+    safe = np.where(den > 0, den, 1.0)
+    s, t = (d11 * d20 - d01 * d21) / safe, (d00 * d21 - d01 * d20) / safe
+    inside = (den > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
+    best = a + s[..., None] * ab + t[..., None] * ac
+    best_d2 = np.where(inside, _dot(points - best, points - best), np.inf)
+    for start, end in ((a, b), (b, c), (c, a)):
+        edge = end - start
+        length2 = _dot(edge, edge)
+        along = np.clip(_dot(points - start, edge) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+        on_edge = start + along[..., None] * edge
+        d2 = _dot(points - on_edge, points - on_edge)
+        closer = d2 < best_d2
+        best = np.where(closer[..., None], on_edge, best)
+        best_d2 = np.where(closer, d2, best_d2)
+    return best, best_d2
+
+
+def point_to_surface(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact distance from each point to a triangle mesh and the nearest face.
+
+    points (N, 3), verts (n, 3), faces (m, 3) -> distances (N,), face ids (N,).
+    Candidates are the faces with the k nearest centroids; a point's answer is final
+    once it is no farther than (k-th centroid distance - largest centroid-to-vertex
+    radius), below which no other face can reach; k doubles for the rest.
+    """
+    tri = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
+    centroids = tri.mean(1)
+    radius = np.linalg.norm(tri - centroids[:, None], axis=2).max()
+    tree = cKDTree(centroids)
+    points = np.asarray(points, dtype=np.float64)
+    best = np.full(len(points), np.inf)
+    best_face = np.zeros(len(points), dtype=np.int64)
+    todo = np.arange(len(points))
+    k = min(16, len(faces))
+    while len(todo):
+        reach, cand = tree.query(points[todo], k=k)
+        reach, cand = reach.reshape(len(todo), -1), cand.reshape(len(todo), -1)
+        dist = np.sqrt(closest_on_triangles(points[todo][:, None, :], tri[cand])[1])  # (t, k)
+        pick = dist.argmin(1)
+        best[todo] = dist[np.arange(len(todo)), pick]
+        best_face[todo] = cand[np.arange(len(todo)), pick]
+        if k == len(faces):
+            break
+        todo = todo[best[todo] > reach[:, -1] - radius]
+        k = min(2 * k, len(faces))
+    return best, best_face

@@ -13,71 +13,13 @@ import torch
 from scipy.spatial import cKDTree
 
 from .losses import mesh_edges, sample_surface, uniform_laplacian
+from .meshing import point_to_surface
 from .radar import embree_intersector
 from .remesh import self_intersecting_faces
 
 # Paper column order; *_norm are divided by the ground truth's bounding-box diagonal.
 COLUMNS = ("dice", "jaccard", "assd_mm", "assd_norm", "hd_mm", "hd_norm", "hd95_mm", "hd95_norm",
            "ane_rad", "anld", "si_pct")
-
-
-def closest_on_triangles(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """Closest point of each triangle to each point (Ericson, Real-Time Collision Detection 5.1.5).
-
-    points (N, 3), tri (N, 3, 3) -> (N, 3): row i is the point of triangle i nearest points[i].
-    """
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    ab, ac = b - a, c - a
-    dot = lambda x, y: np.einsum("nc,nc->n", x, y)  # noqa: E731
-    ap, bp, cp = points - a, points - b, points - c
-    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inside = a + (ab * vb[:, None] + ac * vc[:, None]) / (va + vb + vc)[:, None]
-        on_ab = a + ab * (d1 / (d1 - d3))[:, None]
-        on_ac = a + ac * (d2 / (d2 - d6))[:, None]
-        on_bc = b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None]
-    # Ericson's regions in his order of tests: the first that holds wins.
-    regions = [
-        (d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (vc <= 0) & (d1 >= 0) & (d3 <= 0),
-        (d6 >= 0) & (d5 <= d6), (vb <= 0) & (d2 >= 0) & (d6 <= 0), (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-    ]
-    out = inside
-    for cond, value in reversed(list(zip(regions, [a, b, on_ab, c, on_ac, on_bc]))):
-        out = np.where(cond[:, None], value, out)
-    return out
-
-
-def point_to_surface(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Exact distance from each point to a triangle mesh and the nearest face.
-
-    points (N, 3), verts (n, 3), faces (m, 3) -> distances (N,), face ids (N,).
-    Candidates are the faces with the k nearest centroids; a point's answer is final
-    once it is no farther than (k-th centroid distance - largest centroid-to-vertex
-    radius), below which no other face can reach; k doubles for the rest.
-    """
-    tri = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
-    centroids = tri.mean(1)
-    radius = np.linalg.norm(tri - centroids[:, None], axis=2).max()
-    tree = cKDTree(centroids)
-    points = np.asarray(points, dtype=np.float64)
-    best = np.full(len(points), np.inf)
-    best_face = np.zeros(len(points), dtype=np.int64)
-    todo = np.arange(len(points))
-    k = min(16, len(faces))
-    while len(todo):
-        reach, cand = tree.query(points[todo], k=k)
-        reach, cand = reach.reshape(len(todo), -1), cand.reshape(len(todo), -1)
-        p = np.repeat(points[todo], cand.shape[1], axis=0)
-        dist = np.linalg.norm(closest_on_triangles(p, tri[cand.ravel()]) - p, axis=1).reshape(cand.shape)
-        pick = dist.argmin(1)
-        best[todo] = dist[np.arange(len(todo)), pick]
-        best_face[todo] = cand[np.arange(len(todo)), pick]
-        if k == len(faces):
-            break
-        todo = todo[best[todo] > reach[:, -1] - radius]
-        k = min(2 * k, len(faces))
-    return best, best_face
 
 
 def voxelise(verts: np.ndarray, faces: np.ndarray, lo: np.ndarray, shape: tuple[int, int, int],

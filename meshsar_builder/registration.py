@@ -37,6 +37,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from meshsar_builder.errors import MeshError
+from meshsar_builder.meshing import closest_on_triangles, point_to_surface
 from meshsar_builder.remesh import require_valid, self_intersecting_faces
 
 
@@ -156,12 +157,9 @@ def surface_distances(
 
     verts_* : (n, 3) float, faces_* : (m, 3) int  ->  (n_samples,) a-to-b, (n_samples,) b-to-a.
     """
-    mesh_a, mesh_b = _mesh(verts_a, faces_a), _mesh(verts_b, faces_b)
-    points_a, _ = trimesh.sample.sample_surface(mesh_a, n_samples, seed=rng)
-    points_b, _ = trimesh.sample.sample_surface(mesh_b, n_samples, seed=rng)
-    a_to_b = trimesh.proximity.closest_point(mesh_b, points_a)[1]
-    b_to_a = trimesh.proximity.closest_point(mesh_a, points_b)[1]
-    return a_to_b, b_to_a
+    points_a, _ = trimesh.sample.sample_surface(_mesh(verts_a, faces_a), n_samples, seed=rng)
+    points_b, _ = trimesh.sample.sample_surface(_mesh(verts_b, faces_b), n_samples, seed=rng)
+    return point_to_surface(points_a, verts_b, faces_b)[0], point_to_surface(points_b, verts_a, faces_a)[0]
 
 
 def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -263,35 +261,6 @@ def _unique_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(edges, axis=0)
 
 
-def _closest_on_triangles(
-    points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Closest points of triangles (a, b, c) to points, and squared distances (broadcast over `...`).
-
-    The projection on the plane when it falls inside the triangle, else the nearest of the
-    closest points on the three edges.
-    """
-    ab, ac, ap = b - a, c - a, points - a
-    d00, d01, d11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
-    d20, d21 = _dot(ap, ab), _dot(ap, ac)
-    den = d00 * d11 - d01 * d01
-    safe = np.where(den > 0, den, 1.0)
-    s, t = (d11 * d20 - d01 * d21) / safe, (d00 * d21 - d01 * d20) / safe
-    inside = (den > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
-    best = a + s[..., None] * ab + t[..., None] * ac
-    best_d2 = np.where(inside, _dot(points - best, points - best), np.inf)
-    for start, end in ((a, b), (b, c), (c, a)):
-        edge = end - start
-        length2 = _dot(edge, edge)
-        along = np.clip(_dot(points - start, edge) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
-        on_edge = start + along[..., None] * edge
-        d2 = _dot(points - on_edge, points - on_edge)
-        closer = d2 < best_d2
-        best = np.where(closer[..., None], on_edge, best)
-        best_d2 = np.where(closer, d2, best_d2)
-    return best, best_d2
-
-
 class _Surface:
     """A triangle surface that answers closest-point queries.
 
@@ -318,8 +287,7 @@ class _Surface:
         """(p, 3) points -> closest surface points (p, 3), their faces (p,), distances (p,)."""
         _, nearest = self.tree.query(points, k=self.near)
         candidates = self.vertex_faces[nearest].reshape(len(points), -1)
-        corners = self.verts[self.faces[candidates]]
-        best, d2 = _closest_on_triangles(points[:, None, :], corners[..., 0, :], corners[..., 1, :], corners[..., 2, :])
+        best, d2 = closest_on_triangles(points[:, None, :], self.verts[self.faces[candidates]])
         pick = np.argmin(d2, axis=1)
         rows = np.arange(len(points))
         return best[rows, pick], candidates[rows, pick], np.sqrt(d2[rows, pick])

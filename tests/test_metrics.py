@@ -9,6 +9,7 @@ import trimesh
 pytest.importorskip("torch")
 
 from meshsar_builder import metrics as M  # noqa: E402
+from meshsar_builder.meshing import closest_on_triangles, point_to_surface  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -52,9 +53,9 @@ def test_point_to_surface_matches_brute_force():
     rng = np.random.default_rng(3)
     verts = mesh.vertices * [1.0, 1.5, 0.7] + rng.normal(scale=0.5, size=mesh.vertices.shape)
     points = rng.normal(scale=25.0, size=(300, 3))
-    dist, face = M.point_to_surface(points, verts, mesh.faces)
+    dist, face = point_to_surface(points, verts, mesh.faces)
     tri = verts[mesh.faces]
-    every = np.array([np.linalg.norm(M.closest_on_triangles(np.repeat(p[None], len(tri), 0), tri) - p, axis=1)
+    every = np.array([np.linalg.norm(closest_on_triangles(np.repeat(p[None], len(tri), 0), tri)[0] - p, axis=1)
                       for p in points])  # (300, m)
     np.testing.assert_allclose(dist, every.min(1), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(every[np.arange(len(points)), face], dist, rtol=1e-12, atol=1e-12)
@@ -64,7 +65,7 @@ def test_closest_point_regions_of_one_triangle():
     tri = np.array([[[0.0, 0, 0], [2, 0, 0], [0, 2, 0]]] * 5)
     points = np.array([[-1.0, -1, 1], [3, -1, 0], [1, -1, 0], [0.5, 0.5, 2], [2, 2, 0]])
     expected = np.array([[0.0, 0, 0], [2, 0, 0], [1, 0, 0], [0.5, 0.5, 0], [1, 1, 0]])
-    np.testing.assert_allclose(M.closest_on_triangles(points, tri), expected, atol=1e-12)
+    np.testing.assert_allclose(closest_on_triangles(points, tri)[0], expected, atol=1e-12)
 
 
 def test_voxelised_box_volume():
