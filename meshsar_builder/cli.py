@@ -7,12 +7,12 @@ import os
 import sys
 from pathlib import Path
 
-from .errors import MeshsarError
+from meshsar_builder.pipeline.errors import MeshsarError
 
 
 def cmd_build(args: argparse.Namespace) -> int:
-    from . import recipe as recipe_mod
-    from .runner import build, format_summary
+    from meshsar_builder.pipeline import recipe as recipe_mod
+    from meshsar_builder.pipeline.runner import build, format_summary
 
     recipe = recipe_mod.load(args.recipe)
     out = Path(args.out) if args.out else Path("build") / recipe.name
@@ -24,7 +24,7 @@ def cmd_build(args: argparse.Namespace) -> int:
 
 
 def cmd_splits(args: argparse.Namespace) -> int:
-    from .splits import parse_ratios, split_dataset
+    from meshsar_builder.dataset.splits import parse_ratios, split_dataset
 
     try:
         ratios = parse_ratios(args.ratios) if args.ratios else None
@@ -36,7 +36,7 @@ def cmd_splits(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from .verify import verify
+    from meshsar_builder.dataset.verify import verify
 
     problems = verify(Path(args.out))
     for p in problems:
@@ -46,14 +46,14 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_preview(args: argparse.Namespace) -> int:
-    from .card import preview
+    from meshsar_builder.dataset.card import preview
 
     print(preview(Path(args.out), args.n))
     return 0
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import PARTS, run
+    from meshsar_builder.bench.suite import PARTS, run
 
     parts = list(PARTS) if args.part == "all" else [args.part]
     for part in run(parts, Path(args.out)):
@@ -62,14 +62,14 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from .train import train
+    from meshsar_builder.trainer.train import train
 
     print(train(args.config, args.data, args.split, args.out).run)
     return 0
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .evaluate import evaluate
+    from meshsar_builder.trainer.evaluate import evaluate
 
     evaluate(args.run, args.data, args.split)
     print((Path(args.run) / f"eval-{args.split}" / "summary.md").read_text())
@@ -112,7 +112,7 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="built dataset folder")
     e.add_argument("--split", default="seed-0")
     e.set_defaults(func=cmd_evaluate)
-    from .bench import PARTS
+    from meshsar_builder.bench.suite import PARTS
 
     be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/")
     be.add_argument("part", nargs="?", default="all", choices=[*PARTS, "all"])

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 from collections import defaultdict
 
-from meshsar_builder import card
-from meshsar_builder.io import read_json, write_bytes
-from meshsar_builder.runner import STAGE_ORDER, Context, Item, Results, Stage
-from meshsar_builder.shards import INDEX_NAME
-from meshsar_builder.splits import RESERVED, split_path
-from meshsar_builder.ssm import load_model
+from meshsar_builder.dataset import card
+from meshsar_builder.dataset.shards import INDEX_NAME
+from meshsar_builder.dataset.splits import RESERVED, split_path
+from meshsar_builder.geometry.ssm import load_model
+from meshsar_builder.pipeline.io import read_json, write_bytes
+from meshsar_builder.pipeline.runner import STAGE_ORDER, Context, Item, Results, Stage
 
 NAME = "card"
 GALLERY = 6  # samples in the card's gallery; `meshsar preview --n N` draws more

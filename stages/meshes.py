@@ -11,10 +11,11 @@ import dataclasses
 import numpy as np
 import trimesh
 
-from meshsar_builder.meshfile import write_ply
-from meshsar_builder.meshing import labels_to_surface
-from meshsar_builder.runner import Context, Item, Results, Stage
-from meshsar_builder.sources import STRUCTURES, LabelItem, read_label_map
+from meshsar_builder.dataset.sources import LabelItem, read_label_map
+from meshsar_builder.geometry.meshfile import write_ply
+from meshsar_builder.geometry.meshing import labels_to_surface
+from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 
 NAME = "meshes"
 

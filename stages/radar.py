@@ -16,11 +16,11 @@ import dataclasses
 
 import numpy as np
 
-from meshsar_builder.io import atomic_path
-from meshsar_builder.meshfile import read_ply
-from meshsar_builder.radar import render_sample
-from meshsar_builder.runner import Context, Item, Results, Stage
-from meshsar_builder.seeding import item_rng
+from meshsar_builder.geometry.meshfile import read_ply
+from meshsar_builder.pipeline.io import atomic_path
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
+from meshsar_builder.pipeline.seeding import item_rng
+from meshsar_builder.radar.render import render_sample
 
 NAME = "radar"
 

@@ -15,16 +15,14 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
-
-from meshsar_builder.errors import MeshError
-from meshsar_builder.io import read_json, sha256_file, write_json
-from meshsar_builder.meshfile import read_ply, write_ply
-from meshsar_builder.meshing import transfer_labels
-from meshsar_builder.registration import accept, choose_template, register
-from meshsar_builder.remesh import simplify
-from meshsar_builder.runner import Context, Item, Results, Stage
-from meshsar_builder.seeding import item_rng
+from meshsar_builder.geometry.meshfile import read_ply, write_ply
+from meshsar_builder.geometry.meshing import transfer_labels
+from meshsar_builder.geometry.registration import accept, choose_template, register
+from meshsar_builder.geometry.remesh import simplify
+from meshsar_builder.pipeline.errors import MeshError
+from meshsar_builder.pipeline.io import read_json, sha256_file, write_json
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
+from meshsar_builder.pipeline.seeding import item_rng
 
 NAME = "register"
 

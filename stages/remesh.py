@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import dataclasses
 
-from meshsar_builder.meshfile import read_ply, write_ply
-from meshsar_builder.meshing import transfer_labels
-from meshsar_builder.remesh import mesh_checks, remesh
-from meshsar_builder.runner import Context, Item, Results, Stage
+from meshsar_builder.geometry.meshfile import read_ply, write_ply
+from meshsar_builder.geometry.meshing import transfer_labels
+from meshsar_builder.geometry.remesh import mesh_checks, remesh
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 
 NAME = "remesh"
 CARRIED = ("source", "subject", "frame", "phase", "cycle_fraction", "provenance", "use")

@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshsar_builder.io import write_json
-from meshsar_builder.meshfile import read_ply
-from meshsar_builder.radar import index_metadata
-from meshsar_builder.runner import Context, Item, Results, Stage, code_version
-from meshsar_builder.shards import FORMAT_VERSION, INDEX_NAME, SHARD_DIR, Sample, build_index, write_shard
-from meshsar_builder.splits import make_split, write_split
+from meshsar_builder.dataset.shards import FORMAT_VERSION, INDEX_NAME, SHARD_DIR, Sample, build_index, write_shard
+from meshsar_builder.dataset.splits import make_split, write_split
+from meshsar_builder.geometry.meshfile import read_ply
+from meshsar_builder.pipeline.io import write_json
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage, code_version
+from meshsar_builder.radar.params import index_metadata
 
 NAME = SHARD_DIR  # the stage folder is the index's shard folder
 

@@ -13,12 +13,11 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from meshsar_builder import phantom
-from meshsar_builder.io import write_json
-from meshsar_builder.recipe import SourceSpec
-from meshsar_builder.runner import Context, Item, Results, Stage
-from meshsar_builder.seeding import item_rng
-from meshsar_builder.sources import LabelItem, index_acdc, index_mmwhs, index_nifti
+from meshsar_builder.dataset.sources import LabelItem, SourceSpec, index_acdc, index_mmwhs, index_nifti
+from meshsar_builder.geometry import phantom_beating, phantom_heart
+from meshsar_builder.pipeline.io import write_json
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
+from meshsar_builder.pipeline.seeding import item_rng
 
 NAME = "sources"
 
@@ -80,9 +79,9 @@ def run(ctx: Context, item: Item) -> dict:
     folder = ctx.stage_dir(NAME) / spec.name
     rng = item_rng(ctx.recipe.seed, NAME, item.id)
     if spec.anatomy == "whole_heart":
-        phantom.write_mmwhs_subject(folder, subject, rng, voxel_mm=spec.voxel_mm)
+        phantom_heart.write_mmwhs_subject(folder, subject, rng, voxel_mm=spec.voxel_mm)
     else:
-        phantom.write_acdc_subject(folder, subject, rng, n_frames=spec.frames, voxel_mm=spec.voxel_mm)
+        phantom_beating.write_acdc_subject(folder, subject, rng, n_frames=spec.frames, voxel_mm=spec.voxel_mm)
     found = index_source(spec, folder, provenance="phantom", subject=subject)
     return {"label_items": [li.to_json() for li in found]}
 

@@ -16,12 +16,12 @@ import dataclasses
 
 import numpy as np
 
-from meshsar_builder.errors import MeshError
-from meshsar_builder.io import write_json
-from meshsar_builder.meshfile import read_ply, write_ply
-from meshsar_builder.runner import Context, Item, Results, Stage
-from meshsar_builder.seeding import item_rng
-from meshsar_builder.ssm import build_model, quality_report, sample_valid, save_model
+from meshsar_builder.geometry.meshfile import read_ply, write_ply
+from meshsar_builder.geometry.ssm import build_model, quality_report, sample_valid, save_model
+from meshsar_builder.pipeline.errors import MeshError
+from meshsar_builder.pipeline.io import write_json
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
+from meshsar_builder.pipeline.seeding import item_rng
 
 NAME = "ssm"
 

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from meshsar_builder import recipe as R
-from meshsar_builder.errors import InputError, RecipeError
-from meshsar_builder.meshfile import read_ply
-from meshsar_builder.runner import build
-from meshsar_builder.sources import MMWHS_TABLE, read_label_map
+from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+from meshsar_builder.geometry.meshfile import read_ply
+from meshsar_builder.pipeline import recipe as R
+from meshsar_builder.pipeline.errors import InputError, RecipeError
+from meshsar_builder.pipeline.runner import build
 
 from .conftest import ball_volume, save_nifti
 

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from meshsar_builder import recipe as R
 from meshsar_builder.cli import main
-from meshsar_builder.io import TMP_MARK
-from meshsar_builder.meshfile import read_ply
-from meshsar_builder.runner import build
+from meshsar_builder.geometry.meshfile import read_ply
+from meshsar_builder.pipeline import recipe as R
+from meshsar_builder.pipeline.io import TMP_MARK
+from meshsar_builder.pipeline.runner import build
 
 from .conftest import MANIFESTS, ball_volume, save_nifti
 
@@ -157,8 +157,8 @@ def test_lost_outputs_are_rebuilt_and_a_removed_source_is_named(tmp_path, tmp_re
 def test_full_disk_stops_with_a_clear_error_and_keeps_finished_items(tmp_path, tmp_recipe, monkeypatch):
     import errno
 
-    from meshsar_builder import io as io_mod
-    from meshsar_builder.errors import MeshsarError
+    from meshsar_builder.pipeline import io as io_mod
+    from meshsar_builder.pipeline.errors import MeshsarError
 
     data = nifti_folder(tmp_path / "data", n_good=3)
     recipe = R.load(tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.0)))

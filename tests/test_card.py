@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from meshsar_builder.card import render_views
-from meshsar_builder.radar import view_frame
+from meshsar_builder.dataset.card import render_views
+from meshsar_builder.radar.params import view_frame
 
 FOV, SIZE = 160.0, 128
 

@@ -12,11 +12,11 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from meshsar_builder.data import MeshSARDataset, MeshSARIterable, collate_meshes
-from meshsar_builder.errors import InputError
-from meshsar_builder.splits import make_split, read_split, write_split
+from meshsar_builder.dataset.readers import MeshSARDataset, MeshSARIterable, collate_meshes
+from meshsar_builder.dataset.splits import make_split, read_split, write_split
+from meshsar_builder.pipeline.errors import InputError
 
-from .test_shards import C, ECHO, H, V, W, tiny_dataset
+from .test_shards import ECHO, C, H, V, W, tiny_dataset
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +80,7 @@ def read_all(ds: MeshSARIterable, rank: int, world: int, workers: int) -> list[s
     got = []
     for worker in range(workers):
         info = mock.Mock(id=worker, num_workers=workers)
-        with mock.patch("meshsar_builder.data.get_worker_info", return_value=info):
+        with mock.patch("meshsar_builder.dataset.readers.get_worker_info", return_value=info):
             ds.rank, ds.world_size = rank, world
             got += [item["sample_id"] for item in ds]
     return got
@@ -104,7 +104,7 @@ def test_iterable_reads_every_sample_once_per_epoch(dataset, world, workers, shu
 def test_iterable_uses_torch_distributed_rank(dataset):
     root, index, _ = dataset
     ds = MeshSARIterable(root, split=None, shuffle=False)
-    with mock.patch("meshsar_builder.data._distributed", return_value=(1, 2)):
+    with mock.patch("meshsar_builder.dataset.readers._distributed", return_value=(1, 2)):
         assert ds.consumer() == (1, 2)
         got = [item["sample_id"] for item in ds]
     assert got == [sid for k, s in enumerate(index["shards"]) if k % 2 == 1 for sid in s["sample_ids"]]

@@ -10,9 +10,9 @@ import trimesh
 
 torch = pytest.importorskip("torch")
 
-from meshsar_builder import losses as L  # noqa: E402
-from meshsar_builder import radar as R  # noqa: E402
-from meshsar_builder.radar_torch import echo_torch  # noqa: E402
+import meshsar_builder.radar.params as RP  # noqa: E402
+from meshsar_builder.radar.differentiable import echo_torch  # noqa: E402
+from meshsar_builder.trainer import losses as L  # noqa: E402
 
 
 @pytest.fixture
@@ -99,7 +99,7 @@ def test_surface_samples_lie_on_the_mesh_with_area_density():
     assert in_first == pytest.approx(0.5 / 3.5, abs=0.01)
 
 
-TINY = R.RadarParams(aperture=(4, 4), step_mm=20.0, n_samples=8, echo_decimation=(1, 1, 1))
+TINY = RP.RadarParams(aperture=(4, 4), step_mm=20.0, n_samples=8, echo_decimation=(1, 1, 1))
 
 
 def tiny_radar_setup(dtype):
@@ -108,9 +108,9 @@ def tiny_radar_setup(dtype):
     verts = torch.tensor(mesh.vertices + rng.normal(scale=2.0, size=mesh.vertices.shape), dtype=dtype)
     faces = torch.tensor(mesh.faces)
     views = ("anterior", "left")
-    positions = np.stack([R.aperture_positions(TINY, v)[[0, 5, 15]] for v in views])
-    centres = np.stack([TINY.z0_mm * R.view_frame(v)[2] for v in views])
-    freqs = R.frequencies(TINY)[[0, 3, 7]]
+    positions = np.stack([RP.aperture_positions(TINY, v)[[0, 5, 15]] for v in views])
+    centres = np.stack([TINY.z0_mm * RP.view_frame(v)[2] for v in views])
+    freqs = RP.frequencies(TINY)[[0, 3, 7]]
     target = torch.stack([echo_torch(1.05 * verts, faces, positions[k], freqs, TINY, centre=centres[k])
                           for k in range(len(views))])[None]  # (1, V, M, Ef)
     return verts, faces, target, positions, centres, freqs

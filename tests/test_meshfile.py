@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from meshsar_builder.meshfile import read_ply, write_ply
+from meshsar_builder.geometry.meshfile import read_ply, write_ply
 
 
 @settings(max_examples=40, deadline=None)

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from meshsar_builder.errors import InputError, MeshError
-from meshsar_builder.meshing import MeshingParams, labels_to_surface, signed_distance
-from meshsar_builder.sources import STRUCTURES
+from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface, signed_distance
+from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import InputError, MeshError
 
 from .conftest import ball_volume
 

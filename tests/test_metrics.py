@@ -8,8 +8,8 @@ import trimesh
 
 pytest.importorskip("torch")
 
-from meshsar_builder import metrics as M  # noqa: E402
-from meshsar_builder.meshing import closest_on_triangles, point_to_surface  # noqa: E402
+from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface  # noqa: E402
+from meshsar_builder.trainer import metrics as M  # noqa: E402
 
 
 @pytest.fixture(scope="module")

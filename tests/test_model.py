@@ -7,25 +7,26 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from meshsar_builder import model as Mo  # noqa: E402
-from meshsar_builder import radar as R  # noqa: E402
-from meshsar_builder import sar as S  # noqa: E402
+import meshsar_builder.radar.echo as RE  # noqa: E402
+import meshsar_builder.radar.params as RP  # noqa: E402
+from meshsar_builder.radar import imaging as S  # noqa: E402
+from meshsar_builder.trainer import model as Mo  # noqa: E402
 
-RADAR = R.RadarParams(snr_db=np.inf)
+RADAR = RP.RadarParams(snr_db=np.inf)
 IMAGES = S.ImageParams(size=64, fov_mm=160.0, channels=("intensity",))
 PIXEL_MM = IMAGES.fov_mm / IMAGES.size
 # Off-centre in every view, within 0.2 pixel of a pixel centre whatever the view's signs.
 POINT = np.array([9.5 * PIXEL_MM + 0.3, -13.5 * PIXEL_MM - 0.4, 6.5 * PIXEL_MM + 0.2])
-FRAMES = np.stack([R.view_frame(v) for v in RADAR.views])
+FRAMES = np.stack([RP.view_frame(v) for v in RADAR.views])
 
 
 @pytest.mark.parametrize("view", RADAR.views)
 def test_projection_lands_on_the_sar_image_of_a_point_scatterer(view):
     torch.set_num_threads(1)
-    frame = R.view_frame(view)
-    echo = R.echo(POINT[None], frame[2][None], np.ones(1), R.aperture_positions(RADAR, view),
-                  R.frequencies(RADAR), RADAR).reshape(*RADAR.aperture, RADAR.n_samples)
-    image = S.view_images(echo, R.frequencies(RADAR), *R.aperture_axes(RADAR), RADAR.z0_mm, IMAGES)[0]
+    frame = RP.view_frame(view)
+    echo = RE.echo(POINT[None], frame[2][None], np.ones(1), RP.aperture_positions(RADAR, view),
+                  RP.frequencies(RADAR), RADAR).reshape(*RADAR.aperture, RADAR.n_samples)
+    image = S.view_images(echo, RP.frequencies(RADAR), *RP.aperture_axes(RADAR), RADAR.z0_mm, IMAGES)[0]
     brightest = np.unravel_index(np.argmax(image), image.shape)
     # The model's own projection and sampling, on a one-hot image of the brightest pixel.
     one_hot = torch.zeros(1, 1, IMAGES.size, IMAGES.size, dtype=torch.float64)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from skimage.measure import euler_number, marching_cubes
 
-from meshsar_builder import phantom
+from meshsar_builder.geometry import phantom_beating, phantom_heart
 
 MMWHS_CODES = (205, 420, 500, 550, 600, 820, 850)
 COARSE = (2.0, 2.0, 2.0)  # whole heart at 2 mm: 8x fewer voxels, same anatomy
@@ -44,16 +44,16 @@ def surface_topology(mask: np.ndarray) -> tuple[bool, int]:
 @pytest.fixture(scope="module")
 def coarse_hearts():
     """Whole hearts of a few seeds at 2 mm: (labels, affine) by seed."""
-    return {seed: phantom.whole_heart_labels(phantom.sample_whole_heart_params(rng(seed)), COARSE) for seed in range(4)}
+    return {seed: phantom_heart.whole_heart_labels(phantom_heart.sample_whole_heart_params(rng(seed)), COARSE) for seed in range(4)}
 
 
 # --- whole heart -------------------------------------------------------------------------------
 
 
 def test_mmwhs_file_is_reproducible_and_readable(tmp_path):
-    a = phantom.write_mmwhs_subject(tmp_path / "a", "ct_train_1001", rng(7), voxel_mm=COARSE)
-    b = phantom.write_mmwhs_subject(tmp_path / "b", "ct_train_1001", rng(7), voxel_mm=COARSE)
-    c = phantom.write_mmwhs_subject(tmp_path / "c", "ct_train_1001", rng(8), voxel_mm=COARSE)
+    a = phantom_heart.write_mmwhs_subject(tmp_path / "a", "ct_train_1001", rng(7), voxel_mm=COARSE)
+    b = phantom_heart.write_mmwhs_subject(tmp_path / "b", "ct_train_1001", rng(7), voxel_mm=COARSE)
+    c = phantom_heart.write_mmwhs_subject(tmp_path / "c", "ct_train_1001", rng(8), voxel_mm=COARSE)
     assert a.name == "ct_train_1001_label.nii.gz" and a.parent == tmp_path / "a"
     assert a.read_bytes() == b.read_bytes()
     assert a.read_bytes() != c.read_bytes()
@@ -124,7 +124,7 @@ def test_whole_heart_union_is_one_genus_zero_solid(coarse_hearts, seed):
 @settings(deadline=None, max_examples=12)
 @given(seed=st.integers(0, 2**32 - 1))
 def test_whole_heart_union_genus_zero_at_1mm(seed):
-    labels, _ = phantom.whole_heart_labels(phantom.sample_whole_heart_params(rng(seed)))
+    labels, _ = phantom_heart.whole_heart_labels(phantom_heart.sample_whole_heart_params(rng(seed)))
     mask = labels > 0
     assert set(np.unique(labels)) == {0, *MMWHS_CODES}
     assert ndimage.label(mask)[1] == 1
@@ -133,12 +133,12 @@ def test_whole_heart_union_genus_zero_at_1mm(seed):
 
 
 def test_whole_heart_parameters_vary_within_documented_ranges():
-    a, b = phantom.sample_whole_heart_params(rng(0)), phantom.sample_whole_heart_params(rng(1))
-    assert a == phantom.sample_whole_heart_params(rng(0))
-    assert a.keys() == b.keys() == phantom.WHOLE_HEART_RANGES.keys()
+    a, b = phantom_heart.sample_whole_heart_params(rng(0)), phantom_heart.sample_whole_heart_params(rng(1))
+    assert a == phantom_heart.sample_whole_heart_params(rng(0))
+    assert a.keys() == b.keys() == phantom_heart.WHOLE_HEART_RANGES.keys()
     assert sum(a[k] != b[k] for k in a) >= 15
     for params in (a, b):
-        for name, (low, high) in phantom.WHOLE_HEART_RANGES.items():
+        for name, (low, high) in phantom_heart.WHOLE_HEART_RANGES.items():
             assert low <= params[name] <= high
 
 
@@ -148,8 +148,8 @@ def test_whole_heart_parameters_vary_within_documented_ranges():
 @settings(deadline=None, max_examples=5)
 @given(seed=st.integers(0, 2**32 - 1))
 def test_biventricular_beat_is_realistic(seed):
-    params = phantom.sample_biventricular_params(rng(seed))
-    frames, affine, info = phantom.biventricular_frames(params, n_frames=20)
+    params = phantom_beating.sample_biventricular_params(rng(seed))
+    frames, affine, info = phantom_beating.biventricular_frames(params, n_frames=20)
     assert len(frames) == 20 and all(f.dtype == np.uint8 and f.shape == frames[0].shape for f in frames)
     np.testing.assert_allclose(np.linalg.norm(affine[:3, :3], axis=0), (1.5, 1.5, 8.0))
     voxel_ml = abs(np.linalg.det(affine[:3, :3])) / 1000
@@ -179,7 +179,7 @@ def test_biventricular_beat_is_realistic(seed):
 
 
 def test_biventricular_rv_is_a_crescent_beside_the_lv():
-    frames, affine, _ = phantom.biventricular_frames(phantom.sample_biventricular_params(rng(3)))
+    frames, affine, _ = phantom_beating.biventricular_frames(phantom_beating.sample_biventricular_params(rng(3)))
     labels = frames[0]
     mid = labels[:, :, labels.shape[2] // 3]
     rv = np.argwhere(mid == 1)
@@ -193,9 +193,9 @@ def test_biventricular_rv_is_a_crescent_beside_the_lv():
 
 
 def test_acdc_subject_layout_and_reproducibility(tmp_path):
-    subject = phantom.write_acdc_subject(tmp_path / "a", "patient001", rng(5), n_frames=12)
-    again = phantom.write_acdc_subject(tmp_path / "b", "patient001", rng(5), n_frames=12)
-    other = phantom.write_acdc_subject(tmp_path / "c", "patient001", rng(6), n_frames=12)
+    subject = phantom_beating.write_acdc_subject(tmp_path / "a", "patient001", rng(5), n_frames=12)
+    again = phantom_beating.write_acdc_subject(tmp_path / "b", "patient001", rng(5), n_frames=12)
+    other = phantom_beating.write_acdc_subject(tmp_path / "c", "patient001", rng(6), n_frames=12)
     assert subject == tmp_path / "a" / "patient001"
     names = sorted(p.name for p in subject.iterdir())
     assert names == ["Info.cfg"] + [f"patient001_frame{i:02d}_gt.nii.gz" for i in range(1, 13)]
@@ -219,8 +219,8 @@ def test_acdc_subject_layout_and_reproducibility(tmp_path):
 
 
 def test_biventricular_parameters_vary_within_documented_ranges():
-    a, b = phantom.sample_biventricular_params(rng(0)), phantom.sample_biventricular_params(rng(1))
-    assert a.keys() == b.keys() == phantom.BIVENTRICULAR_RANGES.keys()
+    a, b = phantom_beating.sample_biventricular_params(rng(0)), phantom_beating.sample_biventricular_params(rng(1))
+    assert a.keys() == b.keys() == phantom_beating.BIVENTRICULAR_RANGES.keys()
     assert sum(a[k] != b[k] for k in a) >= 15
-    for name, (low, high) in phantom.BIVENTRICULAR_RANGES.items():
+    for name, (low, high) in phantom_beating.BIVENTRICULAR_RANGES.items():
         assert low <= a[name] <= high and low <= b[name] <= high

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from meshsar_builder.bench import DEMO, demo_subject
-from meshsar_builder.meshing import transfer_labels
-from meshsar_builder.recipe import load
-from meshsar_builder.registration import accept, register
-from meshsar_builder.remesh import remesh, simplify
+from meshsar_builder.bench.suite import DEMO, demo_subject
+from meshsar_builder.geometry.meshing import transfer_labels
+from meshsar_builder.geometry.registration import accept, register
+from meshsar_builder.geometry.remesh import remesh, simplify
+from meshsar_builder.pipeline.recipe import load
 
 pytestmark = pytest.mark.slow
 

@@ -7,11 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from meshsar_builder import recipe as R
-from meshsar_builder.data import MeshSARDataset
-from meshsar_builder.io import TMP_MARK, read_json, sha256_file
-from meshsar_builder.runner import STAGE_ORDER, build
-from meshsar_builder.verify import verify
+from meshsar_builder.dataset.readers import MeshSARDataset
+from meshsar_builder.dataset.verify import verify
+from meshsar_builder.pipeline import recipe as R
+from meshsar_builder.pipeline.io import TMP_MARK, read_json, sha256_file
+from meshsar_builder.pipeline.runner import STAGE_ORDER, build
 
 from .conftest import MANIFESTS
 

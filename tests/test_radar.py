@@ -7,15 +7,18 @@ import numpy as np
 import pytest
 import trimesh
 
-from meshsar_builder import radar as R
-from meshsar_builder.errors import MeshsarError
-from meshsar_builder.sar import ImageParams
+import meshsar_builder.radar.echo as RE
+import meshsar_builder.radar.params as RP
+import meshsar_builder.radar.render as RR
+import meshsar_builder.radar.visibility as RV
+from meshsar_builder.pipeline.errors import MeshsarError
+from meshsar_builder.radar.imaging import ImageParams
 
 SMALL = dict(aperture=(12, 10), step_mm=4.0, n_samples=24, echo_decimation=(3, 2, 2))
 
 
 def small_radar(**overrides):
-    return R.RadarParams(**{**SMALL, **overrides})
+    return RP.RadarParams(**{**SMALL, **overrides})
 
 
 def ellipsoid(subdivisions=2):
@@ -37,26 +40,26 @@ def ellipsoid(subdivisions=2):
 ])
 def test_bad_parameters_name_the_field(field, value, words):
     with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
-        R.RadarParams(**{field: value})
+        RP.RadarParams(**{field: value})
 
 
 def test_parameters_accept_recipe_values():
-    radar = R.RadarParams(z0_mm=300, views=["left"], aperture=[40, 40], snr_db=float("inf"))
+    radar = RP.RadarParams(z0_mm=300, views=["left"], aperture=[40, 40], snr_db=float("inf"))
     assert radar.z0_mm == 300.0 and isinstance(radar.z0_mm, float)
     assert radar.views == ("left",) and radar.aperture == (40, 40)
 
 
-@pytest.mark.parametrize("view", list(R.VIEW_FRAMES))
+@pytest.mark.parametrize("view", list(RP.VIEW_FRAMES))
 def test_view_frames_are_right_handed_and_orthonormal(view):
-    u, v, w = R.view_frame(view)
-    np.testing.assert_allclose(R.view_frame(view) @ R.view_frame(view).T, np.eye(3))
+    u, v, w = RP.view_frame(view)
+    np.testing.assert_allclose(RP.view_frame(view) @ RP.view_frame(view).T, np.eye(3))
     np.testing.assert_allclose(np.cross(u, v), w)
 
 
 def test_aperture_is_centred_on_the_view_axis_at_z0_row_major():
     radar = small_radar()
-    positions = R.aperture_positions(radar, "left")
-    u, v, w = R.view_frame("left")
+    positions = RP.aperture_positions(radar, "left")
+    u, v, w = RP.view_frame("left")
     np.testing.assert_allclose(positions.mean(axis=0), radar.z0_mm * w, atol=1e-12)
     np.testing.assert_allclose(positions @ w, radar.z0_mm)
     grid = positions.reshape(*radar.aperture, 3)
@@ -65,25 +68,25 @@ def test_aperture_is_centred_on_the_view_axis_at_z0_row_major():
 
 
 def test_frequencies_follow_the_chirp():
-    radar = R.RadarParams(t0_s=2e-6)
-    f = R.frequencies(radar)
+    radar = RP.RadarParams(t0_s=2e-6)
+    f = RP.frequencies(radar)
     assert f[0] == pytest.approx(77e9 + 100e12 * 2e-6)
     assert f[-1] - f[0] == pytest.approx(100e12 * 63 / 1.6e6)
     assert len(f) * (f[1] - f[0]) == pytest.approx(4.0e9)
 
 
 def test_decimation_keeps_a_centred_grid():
-    np.testing.assert_array_equal(R.decimation_indices(80, 5), np.arange(2, 80, 5))
-    np.testing.assert_array_equal(R.decimation_indices(64, 2), np.arange(0, 64, 2))
-    grid = R.echo_grid(R.RadarParams())
+    np.testing.assert_array_equal(RP.decimation_indices(80, 5), np.arange(2, 80, 5))
+    np.testing.assert_array_equal(RP.decimation_indices(64, 2), np.arange(0, 64, 2))
+    grid = RP.echo_grid(RP.RadarParams())
     assert grid["frequencies_hz"].shape == (32,)
     for view, positions in grid["positions_mm"].items():
         assert positions.shape == (256, 3)
-        np.testing.assert_allclose(positions.mean(axis=0), 300.0 * R.view_frame(view)[2], atol=1e-9)
+        np.testing.assert_allclose(positions.mean(axis=0), 300.0 * RP.view_frame(view)[2], atol=1e-9)
 
 
 def test_index_metadata_is_plain_json_with_the_contract_keys():
-    meta = R.index_metadata(R.RadarParams(snr_db=math.inf), ImageParams())
+    meta = RP.index_metadata(RP.RadarParams(snr_db=math.inf), ImageParams())
     text = json.dumps(meta, allow_nan=False)
     assert set(json.loads(text)) >= {"views", "fov_mm", "image_size", "channels", "radar", "echo_grid"}
     assert set(meta["radar"]) == {"f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
@@ -100,15 +103,15 @@ def test_intersector_is_embree():
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
     verts, faces = ellipsoid(1)
-    assert isinstance(R.embree_intersector(verts, faces), RayMeshIntersector)
+    assert isinstance(RV.embree_intersector(verts, faces), RayMeshIntersector)
 
 
 def test_convex_sphere_is_about_half_visible_and_never_self_occluded():
     mesh = trimesh.creation.icosphere(3, radius=40.0)
-    radar = R.RadarParams()
-    probes = R.probe_points(radar, "anterior")
-    vis, rays = R.visibility(mesh.vertices, mesh.faces, probes)
-    centres, normals, areas = R.facet_geometry(mesh.vertices, mesh.faces)
+    radar = RP.RadarParams()
+    probes = RP.probe_points(radar, "anterior")
+    vis, rays = RV.visibility(mesh.vertices, mesh.faces, probes)
+    centres, normals, areas = RV.facet_geometry(mesh.vertices, mesh.faces)
     facing = np.einsum("fc,fpc->fp", normals, probes[None] - centres[:, None]) > 0
     # Convex: a facet sees every probe it faces.
     np.testing.assert_array_equal(vis, facing.mean(axis=1))
@@ -126,9 +129,9 @@ def test_facet_behind_a_plate_is_hidden_and_one_beside_it_is_seen():
         [[-30.0, 50, -30], [30, 50, -30], [30, 50, 30], [-30, 50, 30]],  # plate at y = 50
     ])
     faces = np.array([[0, 2, 1], [3, 5, 4], [6, 7, 8], [6, 8, 9]])
-    _, normals, _ = R.facet_geometry(verts, faces)
+    _, normals, _ = RV.facet_geometry(verts, faces)
     assert normals[0] @ [0, 1, 0] > 0.99
-    vis, _ = R.visibility(verts, faces, R.probe_points(R.RadarParams(), "anterior"))
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(RP.RadarParams(), "anterior"))
     assert vis[0] == 0.0
     assert vis[1] == 1.0
 
@@ -139,18 +142,18 @@ def test_facet_behind_a_plate_is_hidden_and_one_beside_it_is_seen():
 def test_single_scatterer_echo_matches_the_formula():
     radar = small_radar(kappa=0.2, p=3.0)
     point, normal = np.array([[5.0, -10.0, 7.0]]), np.array([[0.0, 0.6, 0.8]])
-    positions = R.aperture_positions(radar, "superior")
-    f = R.frequencies(radar)
+    positions = RP.aperture_positions(radar, "superior")
+    f = RP.frequencies(radar)
     offset = positions - point
     r = np.linalg.norm(offset, axis=1)
     cos = offset @ normal[0] / r
     gain = np.where(cos > 0, 0.8 * cos**3 + 0.2 * cos, 0)
-    tau = 2 * r * 1e-3 / R.SPEED_OF_LIGHT_M_PER_S
+    tau = 2 * r * 1e-3 / RP.SPEED_OF_LIGHT_M_PER_S
     expected = (2.5 * gain / r**2)[:, None] * np.exp(
         2j * np.pi * f[None] * tau[:, None] - 1j * np.pi * radar.slope_hz_per_s * tau[:, None] ** 2
     )
-    for method in R.ECHO_METHODS:
-        got = R.echo(point, normal, [2.5], positions, f, radar, method=method)
+    for method in RP.ECHO_METHODS:
+        got = RE.echo(point, normal, [2.5], positions, f, radar, method=method)
         np.testing.assert_allclose(got, expected, rtol=2e-6, atol=2e-6 * np.abs(expected).max())
 
 
@@ -159,20 +162,20 @@ def relative_error(a, b):
 
 
 def echo_case(mesh_name, overrides, view="left"):
-    """Arguments of R.echo for the visible facets of a test mesh, on a 16 x 16 aperture."""
-    radar = R.RadarParams(**{"aperture": (16, 16), "step_mm": 5.0, **overrides})
+    """Arguments of RE.echo for the visible facets of a test mesh, on a 16 x 16 aperture."""
+    radar = RP.RadarParams(**{"aperture": (16, 16), "step_mm": 5.0, **overrides})
     mesh = {
         "icosphere": lambda: trimesh.creation.icosphere(3, radius=50.0),
         "torus": lambda: trimesh.creation.torus(major_radius=45.0, minor_radius=15.0),
         "box": lambda: trimesh.creation.box((90.0, 70.0, 110.0)).subdivide().subdivide(),
     }[mesh_name]()
     assert mesh.is_watertight
-    _, normals, areas = R.facet_geometry(mesh.vertices, mesh.faces)
-    points = R.scatterer_points(mesh.vertices, mesh.faces, radar.scatterer, np.random.default_rng(1))
-    vis, _ = R.visibility(mesh.vertices, mesh.faces, R.probe_points(radar, view))
+    _, normals, areas = RV.facet_geometry(mesh.vertices, mesh.faces)
+    points = RV.scatterer_points(mesh.vertices, mesh.faces, radar.scatterer, np.random.default_rng(1))
+    vis, _ = RV.visibility(mesh.vertices, mesh.faces, RP.probe_points(radar, view))
     seen = vis > 0
-    return (points[seen], normals[seen], (vis * areas)[seen], R.aperture_positions(radar, view),
-            R.frequencies(radar), radar)
+    return (points[seen], normals[seen], (vis * areas)[seen], RP.aperture_positions(radar, view),
+            RP.frequencies(radar), radar)
 
 
 @pytest.mark.parametrize("mesh_name, overrides", [
@@ -184,7 +187,7 @@ def echo_case(mesh_name, overrides, view="left"):
 ])
 def test_chebyshev_echo_matches_direct(mesh_name, overrides):
     args = echo_case(mesh_name, overrides)
-    assert relative_error(R.echo(*args, method="chebyshev"), R.echo(*args, method="direct")) <= 1e-4
+    assert relative_error(RE.echo(*args, method="chebyshev"), RE.echo(*args, method="direct")) <= 1e-4
 
 
 def test_chebyshev_echo_is_deterministic_under_threads():
@@ -192,9 +195,9 @@ def test_chebyshev_echo_is_deterministic_under_threads():
     from concurrent.futures import ThreadPoolExecutor
 
     args = echo_case("icosphere", {})
-    first = R.echo(*args).tobytes()
+    first = RE.echo(*args).tobytes()
     with ThreadPoolExecutor(2) as pool:
-        results = list(pool.map(lambda _: R.echo(*args).tobytes(), range(4)))
+        results = list(pool.map(lambda _: RE.echo(*args).tobytes(), range(4)))
     assert all(result == first for result in results)
 
 
@@ -207,12 +210,12 @@ def test_chebyshev_echo_bytes_do_not_depend_on_thread_settings():
 
     script = (
         "import hashlib, numpy as np, trimesh\n"
-        "from meshsar_builder import radar as R\n"
-        "radar = R.RadarParams(aperture=(6, 5), n_samples=16)\n"
+        "import meshsar_builder.radar.echo as RE, meshsar_builder.radar.params as RP, meshsar_builder.radar.visibility as RV\n"
+        "radar = RP.RadarParams(aperture=(6, 5), n_samples=16)\n"
         "mesh = trimesh.creation.icosphere(2, radius=50.0)\n"
-        "_, normals, areas = R.facet_geometry(mesh.vertices, mesh.faces)\n"
-        "out = R.echo(mesh.triangles_center, normals, areas, R.aperture_positions(radar, 'left'),\n"
-        "             R.frequencies(radar), radar)\n"
+        "_, normals, areas = RV.facet_geometry(mesh.vertices, mesh.faces)\n"
+        "out = RE.echo(mesh.triangles_center, normals, areas, RP.aperture_positions(radar, 'left'),\n"
+        "             RP.frequencies(radar), radar)\n"
         "print(hashlib.sha256(out.tobytes()).hexdigest())\n"
     )
     digests = set()
@@ -229,31 +232,31 @@ def test_chebyshev_echo_needs_uniform_frequencies():
     args = list(echo_case("box", {"n_samples": 7}))
     args[4] = args[4] * np.linspace(1, 1.01, 7) ** 2
     with pytest.raises(ValueError, match="uniformly spaced"):
-        R.echo(*args, method="chebyshev")
-    R.echo(*args, method="direct")
+        RE.echo(*args, method="chebyshev")
+    RE.echo(*args, method="direct")
 
 
 def test_missing_numba_is_a_clear_error(monkeypatch):
-    monkeypatch.setattr(R, "_NUMBA_MISSING", "the production radar echo needs numba (pip install numba)")
+    monkeypatch.setattr(RE, "_NUMBA_MISSING", "the production radar echo needs numba (pip install numba)")
     with pytest.raises(MeshsarError, match="needs numba"):
-        R.echo(*echo_case("box", {"n_samples": 7}))
+        RE.echo(*echo_case("box", {"n_samples": 7}))
 
 
 def test_echo_without_scatterers_is_zero():
     radar = small_radar()
-    out = R.echo(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), R.aperture_positions(radar, "left"),
-                 R.frequencies(radar), radar)
+    out = RE.echo(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), RP.aperture_positions(radar, "left"),
+                 RP.frequencies(radar), radar)
     assert out.shape == (120, 24) and not out.any()
 
 
 def test_random_scatterers_lie_inside_their_facets():
     verts, faces = ellipsoid(2)
-    points = R.scatterer_points(verts, faces, "random", np.random.default_rng(3))
+    points = RV.scatterer_points(verts, faces, "random", np.random.default_rng(3))
     tri = verts[faces]
     bary = trimesh.triangles.points_to_barycentric(tri, points)
     assert (bary > -1e-9).all()
     np.testing.assert_allclose(bary.sum(axis=1), 1.0)
-    centres, normals, _ = R.facet_geometry(verts, faces)
+    centres, normals, _ = RV.facet_geometry(verts, faces)
     np.testing.assert_allclose(np.einsum("fc,fc->f", points - centres, normals), 0, atol=1e-9)
     assert not np.allclose(points, centres)
 
@@ -262,20 +265,20 @@ def test_random_scatterers_lie_inside_their_facets():
 def test_noise_has_the_asked_snr(snr_db):
     rng = np.random.default_rng(5)
     signal = rng.standard_normal((64, 64)) * np.exp(1j * rng.uniform(0, 7, (64, 64)))
-    noisy, noise_power = R.add_noise(signal, snr_db, np.random.default_rng(6))
+    noisy, noise_power = RE.add_noise(signal, snr_db, np.random.default_rng(6))
     measured = 10 * np.log10(np.mean(np.abs(signal) ** 2) / np.mean(np.abs(noisy - signal) ** 2))
     assert abs(measured - snr_db) < 0.5
     assert noise_power == pytest.approx(np.mean(np.abs(signal) ** 2) / 10 ** (snr_db / 10))
-    assert R.add_noise(signal, math.inf, None)[0] is signal
+    assert RE.add_noise(signal, math.inf, None)[0] is signal
 
 
 def test_render_sample_is_seeded_and_shaped():
     verts, faces = ellipsoid(2)
     radar = small_radar(scatterer="random", views=("anterior", "superior"))
     images = ImageParams(size=16)
-    first = R.render_sample(verts, faces, radar, images, np.random.default_rng(11))
-    again = R.render_sample(verts, faces, radar, images, np.random.default_rng(11))
-    other = R.render_sample(verts, faces, radar, images, np.random.default_rng(12))
+    first = RR.render_sample(verts, faces, radar, images, np.random.default_rng(11))
+    again = RR.render_sample(verts, faces, radar, images, np.random.default_rng(11))
+    other = RR.render_sample(verts, faces, radar, images, np.random.default_rng(12))
     assert first["sar"].shape == (2, 2, 16, 16) and first["sar"].dtype == np.float16
     assert first["echo"].shape == (2, 4, 5, 12) and first["echo"].dtype == np.complex64
     assert first["sar"].tobytes() == again["sar"].tobytes()
@@ -291,12 +294,12 @@ def test_render_sample_is_seeded_and_shaped():
 def test_decimated_echo_is_the_full_echo_on_the_echo_grid():
     verts, faces = ellipsoid(1)
     radar = small_radar(snr_db=math.inf, views=("left",))
-    out = R.render_sample(verts, faces, radar, ImageParams(size=8), np.random.default_rng(0))
-    _, normals, areas = R.facet_geometry(verts, faces)
-    vis, _ = R.visibility(verts, faces, R.probe_points(radar, "left"))
-    grid = R.echo_grid(radar)
+    out = RR.render_sample(verts, faces, radar, ImageParams(size=8), np.random.default_rng(0))
+    _, normals, areas = RV.facet_geometry(verts, faces)
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "left"))
+    grid = RP.echo_grid(radar)
     seen = vis > 0
-    expected = R.echo(R.scatterer_points(verts, faces, "centroid", None)[seen], normals[seen], (vis * areas)[seen],
+    expected = RE.echo(RV.scatterer_points(verts, faces, "centroid", None)[seen], normals[seen], (vis * areas)[seen],
                       grid["positions_mm"]["left"], grid["frequencies_hz"], radar, method="direct")
     np.testing.assert_allclose(out["echo"][0].reshape(expected.shape), expected, rtol=0,
                                atol=1e-5 * np.abs(expected).max())
@@ -304,19 +307,19 @@ def test_decimated_echo_is_the_full_echo_on_the_echo_grid():
 
 def test_chebyshev_echo_matches_direct_on_a_phantom_heart(tmp_path):
     """A whole-heart phantom mesh, visible facets weighted as the radar stage does, one view."""
-    from meshsar_builder import phantom
-    from meshsar_builder.meshing import MeshingParams, labels_to_surface
-    from meshsar_builder.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.geometry import phantom_heart
+    from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface
 
-    path = phantom.write_mmwhs_subject(tmp_path, "ct_train_1001", np.random.default_rng(3), voxel_mm=(2.0, 2.0, 2.0))
+    path = phantom_heart.write_mmwhs_subject(tmp_path, "ct_train_1001", np.random.default_rng(3), voxel_mm=(2.0, 2.0, 2.0))
     surf = labels_to_surface(*read_label_map(path, MMWHS_TABLE), ["lv", "myo", "rv", "la", "ra", "aorta", "pa"],
                              MeshingParams(spacing_mm=2.0))
     verts = surf.verts - (surf.verts.min(axis=0) + surf.verts.max(axis=0)) / 2
-    radar = R.RadarParams(aperture=(16, 16), step_mm=10.0)
-    vis, _ = R.visibility(verts, surf.faces, R.probe_points(radar, "anterior"))
-    points, normals, areas = R.facet_geometry(verts, surf.faces)
+    radar = RP.RadarParams(aperture=(16, 16), step_mm=10.0)
+    vis, _ = RV.visibility(verts, surf.faces, RP.probe_points(radar, "anterior"))
+    points, normals, areas = RV.facet_geometry(verts, surf.faces)
     seen = vis > 0
-    args = (points[seen], normals[seen], (vis * areas)[seen], R.aperture_positions(radar, "anterior"),
-            R.frequencies(radar), radar)
+    args = (points[seen], normals[seen], (vis * areas)[seen], RP.aperture_positions(radar, "anterior"),
+            RP.frequencies(radar), radar)
     assert seen.sum() > 1000
-    assert relative_error(R.echo(*args, method="chebyshev"), R.echo(*args, method="direct")) <= 1e-4
+    assert relative_error(RE.echo(*args, method="chebyshev"), RE.echo(*args, method="direct")) <= 1e-4

@@ -4,26 +4,28 @@ import numpy as np
 import pytest
 import trimesh
 
-from meshsar_builder import radar as R
+import meshsar_builder.radar.echo as RE
+import meshsar_builder.radar.params as RP
+import meshsar_builder.radar.visibility as RV
 
 torch = pytest.importorskip("torch")
-from meshsar_builder.radar_torch import echo_torch  # noqa: E402
+from meshsar_builder.radar.differentiable import echo_torch  # noqa: E402
 
 
 def reference_with_soft_visibility(verts, faces, positions, freqs, radar, beta):
     """radar.echo (direct) given the soft visibility sigmoid(beta cos theta) as V_k."""
-    centres, normals, areas = R.facet_geometry(verts, faces)
+    centres, normals, areas = RV.facet_geometry(verts, faces)
     to_centre = positions.mean(axis=0) - centres
     cos = np.einsum("fc,fc->f", normals, to_centre) / np.linalg.norm(to_centre, axis=1)
     weights = areas / (1 + np.exp(-beta * cos))
-    return R.echo(centres, normals, weights, positions, freqs, radar, method="direct")
+    return RE.echo(centres, normals, weights, positions, freqs, radar, method="direct")
 
 
 def test_matches_direct_echo_in_float32():
     mesh = trimesh.creation.icosphere(2, radius=1.0)
     verts32 = (mesh.vertices * [50.0, 40.0, 60.0]).astype(np.float32)
-    radar = R.RadarParams()
-    grid = R.echo_grid(radar)
+    radar = RP.RadarParams()
+    grid = RP.echo_grid(radar)
     positions, freqs = grid["positions_mm"]["left"], grid["frequencies_hz"]
     got = echo_torch(torch.from_numpy(verts32), torch.from_numpy(mesh.faces), positions, freqs, radar, beta=8.0)
     assert got.dtype == torch.complex64 and got.shape == (256, 32)
@@ -33,11 +35,11 @@ def test_matches_direct_echo_in_float32():
 
 
 def test_batches_and_chunks_agree(monkeypatch):
-    import meshsar_builder.radar_torch as RT
+    import meshsar_builder.radar.differentiable as RT
 
     mesh = trimesh.creation.icosphere(1, radius=40.0)
-    radar = R.RadarParams(rvp=False)
-    grid = R.echo_grid(radar)
+    radar = RP.RadarParams(rvp=False)
+    grid = RP.echo_grid(radar)
     verts = torch.tensor(mesh.vertices)
     batch = torch.stack([verts, 1.1 * verts])
     whole = echo_torch(batch, torch.tensor(mesh.faces), grid["positions_mm"]["superior"], grid["frequencies_hz"], radar)
@@ -53,9 +55,9 @@ def test_gradcheck_on_a_small_mesh():
     rng = np.random.default_rng(2)
     verts = torch.tensor(mesh.vertices + rng.normal(scale=2.0, size=mesh.vertices.shape), requires_grad=True)
     faces = torch.tensor(mesh.faces)
-    radar = R.RadarParams(aperture=(4, 4), step_mm=20.0, n_samples=8, echo_decimation=(1, 1, 1))
-    positions = R.aperture_positions(radar, "anterior")[[0, 5, 15]]
-    freqs = R.frequencies(radar)[[0, 3, 7]]
+    radar = RP.RadarParams(aperture=(4, 4), step_mm=20.0, n_samples=8, echo_decimation=(1, 1, 1))
+    positions = RP.aperture_positions(radar, "anterior")[[0, 5, 15]]
+    freqs = RP.frequencies(radar)[[0, 3, 7]]
     assert torch.autograd.gradcheck(
         lambda v: echo_torch(v, faces, positions, freqs, radar, beta=5.0), (verts,), eps=1e-6, atol=1e-7, rtol=1e-4
     )
@@ -63,12 +65,12 @@ def test_gradcheck_on_a_small_mesh():
 
 def test_gradient_reaches_every_visible_vertex():
     mesh = trimesh.creation.icosphere(2, radius=40.0)
-    radar = R.RadarParams()
-    grid = R.echo_grid(radar)
+    radar = RP.RadarParams()
+    grid = RP.echo_grid(radar)
     verts = torch.tensor(mesh.vertices, dtype=torch.float32, requires_grad=True)
     target = torch.zeros(256, 32, dtype=torch.complex64)
     out = echo_torch(verts, torch.tensor(mesh.faces), grid["positions_mm"]["anterior"], grid["frequencies_hz"], radar)
     (out - target).abs().mean().backward()
-    facing = mesh.vertex_normals @ R.view_frame("anterior")[2] > 0.3
+    facing = mesh.vertex_normals @ RP.view_frame("anterior")[2] > 0.3
     assert torch.isfinite(verts.grad).all()
     assert (verts.grad[torch.from_numpy(facing)].norm(dim=1) > 0).all()

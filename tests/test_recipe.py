@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from meshsar_builder import recipe as R
-from meshsar_builder.errors import RecipeError
+from meshsar_builder.pipeline import recipe as R
+from meshsar_builder.pipeline.errors import RecipeError
 
 from .conftest import MANIFESTS
 

@@ -4,8 +4,8 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from meshsar_builder.errors import MeshError
-from meshsar_builder.registration import (
+from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface, transfer_labels
+from meshsar_builder.geometry.registration import (
     RegistrationParams,
     accept,
     choose_template,
@@ -13,9 +13,9 @@ from meshsar_builder.registration import (
     register,
     surface_distances,
 )
-from meshsar_builder.meshing import MeshingParams, labels_to_surface, transfer_labels
-from meshsar_builder.remesh import RemeshParams, remesh, simplify
-from meshsar_builder.sources import STRUCTURES
+from meshsar_builder.geometry.remesh import RemeshParams, remesh, simplify
+from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import MeshError
 
 PARAMS = RegistrationParams(distance_samples=5000)
 

@@ -3,8 +3,7 @@ import pytest
 import trimesh
 from scipy.special import ellipeinc, ellipkinc
 
-from meshsar_builder.errors import MeshError
-from meshsar_builder.remesh import (
+from meshsar_builder.geometry.remesh import (
     RemeshParams,
     mesh_checks,
     remesh,
@@ -12,6 +11,7 @@ from meshsar_builder.remesh import (
     self_intersecting_faces,
     simplify,
 )
+from meshsar_builder.pipeline.errors import MeshError
 
 SEMI_AXES = (30.0, 22.0, 18.0)
 

@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from meshsar_builder import radar as R
-from meshsar_builder import sar as S
+import meshsar_builder.radar.echo as RE
+import meshsar_builder.radar.params as RP
+from meshsar_builder.radar import imaging as S
 
-RADAR = R.RadarParams()
+RADAR = RP.RadarParams()
 IMAGES = S.ImageParams()
 PIXEL_MM = IMAGES.fov_mm / IMAGES.size
 # Components at 8.5, -18.5 and 13.5 pixels plus a little: in every preset view the
@@ -16,15 +17,15 @@ POINT = np.array([8.5 * PIXEL_MM + 0.2, -18.5 * PIXEL_MM - 0.15, 13.5 * PIXEL_MM
 
 def point_echo(view, point=POINT, radar=RADAR):
     """Echo (Nx, Ny, N) of one scatterer facing the radar."""
-    frame = R.view_frame(view)
-    signal = R.echo(point[None], frame[2][None], np.ones(1), R.aperture_positions(radar, view),
-                    R.frequencies(radar), radar)
+    frame = RP.view_frame(view)
+    signal = RE.echo(point[None], frame[2][None], np.ones(1), RP.aperture_positions(radar, view),
+                    RP.frequencies(radar), radar)
     return signal.reshape(*radar.aperture, radar.n_samples)
 
 
 def projected_pixel(point, view, images=IMAGES):
     """(row, col) containing the grid_sample coordinates x = 2u/fov, y = -2v/fov (align_corners=False)."""
-    u, v, _ = R.view_frame(view) @ point
+    u, v, _ = RP.view_frame(view) @ point
     x, y = 2 * u / images.fov_mm, -2 * v / images.fov_mm
     return int(np.floor((y + 1) / 2 * images.size)), int(np.floor((x + 1) / 2 * images.size))
 
@@ -46,17 +47,17 @@ def test_grid_sample_reads_the_pixel_of_a_projected_point():
     assert sampled.item() == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("view", list(R.VIEW_FRAMES))
+@pytest.mark.parametrize("view", list(RP.VIEW_FRAMES))
 def test_point_images_at_its_projection_and_range(view):
-    x_mm, y_mm = R.aperture_axes(RADAR)
-    channels = S.view_images(point_echo(view), R.frequencies(RADAR), x_mm, y_mm, RADAR.z0_mm, IMAGES)
+    x_mm, y_mm = RP.aperture_axes(RADAR)
+    channels = S.view_images(point_echo(view), RP.frequencies(RADAR), x_mm, y_mm, RADAR.z0_mm, IMAGES)
     intensity, depth = channels
     row, col = np.unravel_index(np.argmax(intensity), intensity.shape)
     assert (row, col) == projected_pixel(POINT, view)
     assert intensity[row, col] == 1.0
     # Depth is w / (fov/2). Range migration with an aperture this short puts the
     # peak ~1 mm towards the radar (backprojection puts it exactly): 3 % of c/2B.
-    w = R.view_frame(view)[2] @ POINT
+    w = RP.view_frame(view)[2] @ POINT
     assert depth[row, col] * IMAGES.fov_mm / 2 == pytest.approx(w, abs=2.0)
     assert (depth[intensity < S.DEPTH_INTENSITY_FLOOR] == 0).all()
 
@@ -73,10 +74,10 @@ def minus_3db_width(coords, magnitude):
 
 def point_cuts(radar, view="anterior"):
     """-3 dB widths (mm) of a point's image across range (along u) and along range (w), window "none"."""
-    u0, v0, w0 = R.view_frame(view) @ POINT
+    u0, v0, w0 = RP.view_frame(view) @ POINT
     d0 = radar.z0_mm - w0
-    f = R.frequencies(radar)
-    x_mm, y_mm = R.aperture_axes(radar)
+    f = RP.frequencies(radar)
+    x_mm, y_mm = RP.aperture_axes(radar)
     signal = point_echo(view, radar=radar)
     fine = np.linspace(-1, 1, 401)
     across = S.focus(signal, f, x_mm, y_mm, u0 + 12 * fine, np.array([v0]), np.array([d0]), "none")[0, 0]
@@ -85,14 +86,14 @@ def point_cuts(radar, view="anterior"):
 
 
 def test_point_resolution_matches_theory():
-    f = R.frequencies(RADAR)
+    f = RP.frequencies(RADAR)
     wavelength = S.SPEED_OF_LIGHT_MM_PER_S / f.mean()
     across, along, d0 = point_cuts(RADAR)
     assert across == pytest.approx(wavelength * d0 / (2 * RADAR.aperture[0] * RADAR.step_mm), rel=0.25)
     assert S.range_resolution_mm(f) == pytest.approx(37.47, abs=0.01)
     # c/2B is the range width while the aperture's depth of focus is much longer:
     # a 32 mm aperture at 323 mm spans +-4 degrees.
-    narrow = R.RadarParams(aperture=(16, 16))
+    narrow = RP.RadarParams(aperture=(16, 16))
     assert point_cuts(narrow)[1] == pytest.approx(S.range_resolution_mm(f), rel=0.25)
     # The default 160 mm aperture spans +-19 degrees (corners): its kz support
     # reaches 2 k cos(19 deg), so the 3-D focus is sharper in range than c/2B.
@@ -100,9 +101,9 @@ def test_point_resolution_matches_theory():
 
 
 def test_hann_window_lowers_cross_range_sidelobes():
-    x_mm, y_mm = R.aperture_axes(RADAR)
-    f = R.frequencies(RADAR)
-    u0, v0, w0 = R.view_frame("left") @ POINT
+    x_mm, y_mm = RP.aperture_axes(RADAR)
+    f = RP.frequencies(RADAR)
+    u0, v0, w0 = RP.view_frame("left") @ POINT
     u = u0 + np.linspace(-40, 40, 641)
     peak_sidelobe = {}
     for window in S.WINDOWS:
@@ -115,9 +116,9 @@ def test_hann_window_lowers_cross_range_sidelobes():
 
 
 def test_range_slices_cover_the_field_of_view():
-    d = S.range_slices(300.0, 160.0, R.frequencies(RADAR))
+    d = S.range_slices(300.0, 160.0, RP.frequencies(RADAR))
     assert d[0] == 220.0 and d[-1] == 380.0
-    assert np.diff(d).max() <= S.range_resolution_mm(R.frequencies(RADAR)) / S.SLICES_PER_RESOLUTION
+    assert np.diff(d).max() <= S.range_resolution_mm(RP.frequencies(RADAR)) / S.SLICES_PER_RESOLUTION
 
 
 @pytest.mark.parametrize("field, value", [("size", 0), ("fov_mm", -1.0), ("channels", ("colour",)),
@@ -128,8 +129,8 @@ def test_bad_image_parameters_name_the_field(field, value):
 
 
 def test_channels_come_in_the_asked_order():
-    x_mm, y_mm = R.aperture_axes(RADAR)
-    both = S.view_images(point_echo("superior"), R.frequencies(RADAR), x_mm, y_mm, RADAR.z0_mm,
+    x_mm, y_mm = RP.aperture_axes(RADAR)
+    both = S.view_images(point_echo("superior"), RP.frequencies(RADAR), x_mm, y_mm, RADAR.z0_mm,
                          S.ImageParams(channels=("depth", "intensity")))
     assert both.shape == (2, 128, 128)
     assert both[1].max() == 1.0 and both[0].max() < 1.0

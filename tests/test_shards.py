@@ -10,15 +10,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from meshsar_builder import recipe as R
-from meshsar_builder.errors import InputError
-from meshsar_builder.io import sha256_file, write_json
-from meshsar_builder.meshfile import write_ply
-from meshsar_builder.radar import echo_grid
-from meshsar_builder.runner import Context, Results, run_stage
-from meshsar_builder.shards import SHARD_KEYS, Sample, Shard, build_index, read_index, read_shard, write_shard
-from meshsar_builder.splits import make_split, write_split
-from meshsar_builder.verify import verify
+from meshsar_builder.dataset.shards import SHARD_KEYS, Sample, Shard, build_index, read_index, read_shard, write_shard
+from meshsar_builder.dataset.splits import make_split, write_split
+from meshsar_builder.dataset.verify import verify
+from meshsar_builder.geometry.meshfile import write_ply
+from meshsar_builder.pipeline import recipe as R
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import sha256_file, write_json
+from meshsar_builder.pipeline.runner import Context, Results, run_stage
+from meshsar_builder.radar.params import echo_grid
 from stages import shards as shards_stage
 
 # A tiny dataset layout shared by the shard, split, verify and reader tests.

@@ -7,10 +7,16 @@ import gzip
 import numpy as np
 import pytest
 
-from meshsar_builder.errors import InputError
-from meshsar_builder.sources import (
-    ACDC_TABLE, MMWHS_TABLE, STRUCTURES, index_acdc, index_mmwhs, index_nifti, read_label_map,
+from meshsar_builder.dataset.sources import (
+    ACDC_TABLE,
+    MMWHS_TABLE,
+    index_acdc,
+    index_mmwhs,
+    index_nifti,
+    read_label_map,
 )
+from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import InputError
 
 from .conftest import save_nifti, save_nifti_with_sform
 from .data.make_bad import huge_header

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from meshsar_builder.errors import InputError
-from meshsar_builder.splits import largest_remainder, make_split, parse_ratios, split_dataset, write_split
+from meshsar_builder.dataset.splits import largest_remainder, make_split, parse_ratios, split_dataset, write_split
+from meshsar_builder.pipeline.errors import InputError
 
 from .test_shards import tiny_dataset
 

@@ -5,8 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from meshsar_builder.errors import MeshError
-from meshsar_builder.ssm import (
+from meshsar_builder.geometry.ssm import (
     ShapeModel,
     SSMParams,
     build_model,
@@ -20,6 +19,7 @@ from meshsar_builder.ssm import (
     save_model,
     specificity,
 )
+from meshsar_builder.pipeline.errors import MeshError
 
 TRUE_VARIANCES = np.array([16.0, 4.0, 1.0])  # mm^2
 N_SHAPES = 30

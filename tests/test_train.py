@@ -11,18 +11,18 @@ import trimesh
 
 torch = pytest.importorskip("torch")
 
-from meshsar_builder import losses as L  # noqa: E402
-from meshsar_builder import radar as R  # noqa: E402
-from meshsar_builder import train as T  # noqa: E402
-from meshsar_builder.errors import RecipeError  # noqa: E402
-from meshsar_builder.io import sha256_file, write_json  # noqa: E402
-from meshsar_builder.radar_torch import echo_torch  # noqa: E402
-from meshsar_builder.sar import ImageParams  # noqa: E402
-from meshsar_builder.shards import INDEX_NAME, Sample, build_index, write_shard  # noqa: E402
-from meshsar_builder.splits import make_split, write_split  # noqa: E402
+import meshsar_builder.radar.params as RP  # noqa: E402
+from meshsar_builder.dataset.shards import INDEX_NAME, Sample, build_index, write_shard  # noqa: E402
+from meshsar_builder.dataset.splits import make_split, write_split  # noqa: E402
+from meshsar_builder.pipeline.errors import RecipeError  # noqa: E402
+from meshsar_builder.pipeline.io import sha256_file, write_json  # noqa: E402
+from meshsar_builder.radar.differentiable import echo_torch  # noqa: E402
+from meshsar_builder.radar.imaging import ImageParams  # noqa: E402
+from meshsar_builder.trainer import losses as L  # noqa: E402
+from meshsar_builder.trainer import train as T  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY_RADAR = R.RadarParams(aperture=(8, 8), step_mm=10.0, n_samples=8, echo_decimation=(2, 2, 2))
+TINY_RADAR = RP.RadarParams(aperture=(8, 8), step_mm=10.0, n_samples=8, echo_decimation=(2, 2, 2))
 TINY_IMAGES = ImageParams(size=32)
 TINY_CONFIG = """
 name = "tiny"
@@ -51,7 +51,7 @@ def make_dataset(root: Path, n: int = 6, shard_size: int = 3) -> Path:
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     sphere = trimesh.creation.icosphere(2)
-    grid = R.echo_grid(TINY_RADAR)
+    grid = RP.echo_grid(TINY_RADAR)
     samples = []
     for i in range(n):
         verts = (sphere.vertices * rng.uniform(30, 50, 3)).astype(np.float32)
@@ -69,7 +69,7 @@ def make_dataset(root: Path, n: int = 6, shard_size: int = 3) -> Path:
         shards.append({"file": file, "n": len(samples[k : k + shard_size]), "sha256": sha256_file(root / file),
                        "sample_ids": [s.sample_id for s in samples[k : k + shard_size]]})
     index = build_index(recipe="tiny", recipe_sha256="0" * 64, code_version="test",
-                        metadata=R.index_metadata(TINY_RADAR, TINY_IMAGES), shard_size=shard_size, shards=shards,
+                        metadata=RP.index_metadata(TINY_RADAR, TINY_IMAGES), shard_size=shard_size, shards=shards,
                         metas={s.sample_id: s.meta for s in samples})
     write_json(root / INDEX_NAME, index)
     write_split(root, make_split(index, 0, {"train": 2 / 3, "test": 1 / 3}, "sample"))
@@ -218,7 +218,7 @@ def test_overfits_one_sample(tiny_data):
 
 @pytest.mark.slow
 def test_evaluate_writes_metrics_tables_and_renders(tiny_data, tmp_path):
-    from meshsar_builder.evaluate import COLUMNS, evaluate
+    from meshsar_builder.trainer.evaluate import COLUMNS, evaluate
 
     T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1")), tiny_data, out=tmp_path, progress=False)
     summary = evaluate(tmp_path, tiny_data, renders=1, samples=2000, progress=False)

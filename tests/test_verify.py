@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from meshsar_builder.io import sha256_file, write_json
-from meshsar_builder.shards import pack
-from meshsar_builder.verify import verify
+from meshsar_builder.dataset.shards import pack
+from meshsar_builder.dataset.verify import verify
+from meshsar_builder.pipeline.io import sha256_file, write_json
 
 from .test_shards import tiny_dataset
 

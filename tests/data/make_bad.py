@@ -7,7 +7,6 @@ rerunning rewrites the same bytes).
 from __future__ import annotations
 
 import gzip
-import io
 from pathlib import Path
 
 import nibabel as nib

@@ -22,9 +22,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from .io import atomic_path, read_json  # noqa: E402
-from .shards import INDEX_NAME, Shard  # noqa: E402
-from .sources import STRUCTURES  # noqa: E402
+from meshsar_builder.dataset.shards import INDEX_NAME, Shard  # noqa: E402
+from meshsar_builder.geometry.structures import STRUCTURES  # noqa: E402
+from meshsar_builder.pipeline.io import atomic_path, read_json  # noqa: E402
 
 # Canonical structure id -> colour (0: unlabelled).
 PALETTE = np.array([

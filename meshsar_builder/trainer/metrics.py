@@ -12,10 +12,10 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .losses import mesh_edges, sample_surface, uniform_laplacian
-from .meshing import point_to_surface
-from .radar import embree_intersector
-from .remesh import self_intersecting_faces
+from meshsar_builder.geometry.meshing import point_to_surface
+from meshsar_builder.geometry.remesh import self_intersecting_faces
+from meshsar_builder.radar.visibility import embree_intersector
+from meshsar_builder.trainer.losses import mesh_edges, sample_surface, uniform_laplacian
 
 # Paper column order; *_norm are divided by the ground truth's bounding-box diagonal.
 COLUMNS = ("dice", "jaccard", "assd_mm", "assd_norm", "hd_mm", "hd_norm", "hd95_mm", "hd95_norm",

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .io import read_json, write_json
-from .recipe import load
+from meshsar_builder.pipeline.io import read_json, write_json
+from meshsar_builder.pipeline.recipe import load
 
-DEMO = Path(__file__).resolve().parents[1] / "manifests" / "demo.toml"
+DEMO = Path(__file__).resolve().parents[2] / "manifests" / "demo.toml"
 PARTS = ("radar", "geometry", "pipeline", "trainer")
 
 
@@ -36,24 +36,24 @@ def demo_subject(index: int = 0):
 
     Seeded and read back exactly as the sources and meshes stages do.
     """
-    from . import phantom
-    from .meshing import labels_to_surface
-    from .seeding import item_rng
-    from .sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.geometry import phantom_heart
+    from meshsar_builder.geometry.meshing import labels_to_surface
+    from meshsar_builder.pipeline.seeding import item_rng
 
     recipe = load(DEMO)
     spec = recipe.sources[0]
     subject = f"ct_train_{1001 + index}"
     with tempfile.TemporaryDirectory() as tmp:
         rng = item_rng(recipe.seed, "sources", f"{spec.name}-{subject}")
-        path = phantom.write_mmwhs_subject(Path(tmp), subject, rng, voxel_mm=spec.voxel_mm)
+        path = phantom_heart.write_mmwhs_subject(Path(tmp), subject, rng, voxel_mm=spec.voxel_mm)
         labels, affine = read_label_map(path, MMWHS_TABLE)
     return labels_to_surface(labels, affine, list(spec.structures), recipe.meshing)
 
 
 def demo_mesh() -> tuple[np.ndarray, np.ndarray]:
     """A dataset-sized heart mesh: a demo subject remeshed and simplified to the template size, centred."""
-    from .remesh import remesh, simplify
+    from meshsar_builder.geometry.remesh import remesh, simplify
 
     recipe = load(DEMO)
     surf = demo_subject(0)
@@ -62,7 +62,7 @@ def demo_mesh() -> tuple[np.ndarray, np.ndarray]:
 
 
 def bench_radar(out: Path) -> dict:
-    from .bench_radar import run
+    from meshsar_builder.bench.radar import run
 
     return run(out, *demo_mesh())
 
@@ -75,10 +75,10 @@ def _timed(fn, *args):
 
 def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
     """Seconds per subject for meshing, remeshing and registration; ms per SSM sample (demo settings)."""
-    from .registration import register
-    from .remesh import remesh, simplify
-    from .seeding import item_rng
-    from .ssm import build_model, sample_valid
+    from meshsar_builder.geometry.registration import register
+    from meshsar_builder.geometry.remesh import remesh, simplify
+    from meshsar_builder.geometry.ssm import build_model, sample_valid
+    from meshsar_builder.pipeline.seeding import item_rng
 
     recipe = load(DEMO)
     timings = {"meshes": [], "remesh": [], "register": []}
@@ -181,7 +181,7 @@ def bench_pipeline(out: Path, runs: tuple = PIPELINE_RUNS) -> dict:
 
 
 def bench_trainer(out: Path) -> dict:
-    from .bench_trainer import run
+    from meshsar_builder.bench.trainer import run
 
     return run(out)
 

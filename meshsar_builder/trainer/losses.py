@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .radar import RadarParams
-from .radar_torch import echo_torch
+from meshsar_builder.radar.differentiable import echo_torch
+from meshsar_builder.radar.params import RadarParams
 
 RADAR_MODES = ("raw", "profile")
 

@@ -18,8 +18,8 @@ from scipy.spatial import cKDTree
 from skimage import measure
 from skimage.morphology import ball
 
-from .errors import InputError, MeshError
-from .sources import STRUCTURES
+from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import InputError, MeshError
 
 
 @dataclass(frozen=True)

@@ -29,15 +29,15 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from . import losses as L
-from .data import MeshSARDataset, MeshSARIterable, collate_meshes
-from .errors import InputError, RecipeError
-from .io import write_bytes, write_json
-from .model import ModelConfig, SAR2Mesh
-from .radar import RadarParams
-from .recipe import build, parse_toml, read_text
-from .seeding import seed_sequence
-from .shards import read_index
+from meshsar_builder.dataset.readers import MeshSARDataset, MeshSARIterable, collate_meshes
+from meshsar_builder.dataset.shards import read_index
+from meshsar_builder.pipeline.errors import InputError, RecipeError
+from meshsar_builder.pipeline.io import write_bytes, write_json
+from meshsar_builder.pipeline.recipe import build, parse_toml, read_text
+from meshsar_builder.pipeline.seeding import seed_sequence
+from meshsar_builder.radar.params import RadarParams
+from meshsar_builder.trainer import losses as L
+from meshsar_builder.trainer.model import ModelConfig, SAR2Mesh
 
 CHECKPOINT = "checkpoint.pt"
 LOG = "log.csv"

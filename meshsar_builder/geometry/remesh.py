@@ -13,7 +13,7 @@ import numpy as np
 import pymeshlab
 import trimesh
 
-from meshsar_builder.errors import MeshError
+from meshsar_builder.pipeline.errors import MeshError
 
 # pymeshlab renamed AbsoluteValue to PureValue (2022.2); both mean "in mesh units" (mm here).
 _ABSOLUTE = getattr(pymeshlab, "PureValue", None) or getattr(pymeshlab, "AbsoluteValue")

@@ -36,9 +36,9 @@ import trimesh
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
-from meshsar_builder.errors import MeshError
-from meshsar_builder.meshing import closest_on_triangles, point_to_surface
-from meshsar_builder.remesh import require_valid, self_intersecting_faces
+from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface
+from meshsar_builder.geometry.remesh import require_valid, self_intersecting_faces
+from meshsar_builder.pipeline.errors import MeshError
 
 
 @dataclass(frozen=True)

@@ -32,8 +32,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .io import atomic_path, read_json
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import atomic_path, read_json
+
+
+@dataclass(frozen=True)
+class ShardParams:
+    shard_size: int = 64
+
+    def __post_init__(self):
+        if self.shard_size < 1:
+            raise ValueError(f"shard_size: must be >= 1, got {self.shard_size}")
 
 FORMAT_VERSION = 1
 INDEX_NAME = "index.json"

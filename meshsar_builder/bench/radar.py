@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import read_json, write_json
+from meshsar_builder.pipeline.io import read_json, write_json
 
 TARGET_SPEEDUP = 100.0
 TARGET_ERROR = 1e-4
@@ -43,48 +43,51 @@ def _best(function, repeats=REPEATS):
 
 def first_echo_seconds() -> float:
     """Seconds of the first echo call in this process (a small one): kernel compile or cache load."""
-    from . import radar as R
+    import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.params as RP
 
-    radar = R.RadarParams(aperture=(8, 8), n_samples=8)
+    radar = RP.RadarParams(aperture=(8, 8), n_samples=8)
     points = np.array([[0.0, 0.0, 0.0], [5.0, 3.0, -2.0]])
     normals = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
     start = time.perf_counter()
-    R.echo(points, normals, np.ones(2), R.aperture_positions(radar, "anterior"), R.frequencies(radar), radar)
+    RE.echo(points, normals, np.ones(2), RP.aperture_positions(radar, "anterior"), RP.frequencies(radar), radar)
     return time.perf_counter() - start
 
 
 def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
     """The benchmark numbers at default parameters (call on one core; run() arranges that)."""
-    from . import radar as R
-    from .sar import ImageParams, view_images
+    import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.params as RP
+    import meshsar_builder.radar.visibility as RV
+    from meshsar_builder.radar.imaging import ImageParams, view_images
 
     first_call = first_echo_seconds()
-    radar, images = R.RadarParams(), ImageParams()
-    freqs, (x_mm, y_mm) = R.frequencies(radar), R.aperture_axes(radar)
-    _, normals, areas = R.facet_geometry(verts, faces)
-    points = R.scatterer_points(verts, faces, "centroid", None)
-    intersector = R.embree_intersector(verts, faces)
+    radar, images = RP.RadarParams(), ImageParams()
+    freqs, (x_mm, y_mm) = RP.frequencies(radar), RP.aperture_axes(radar)
+    _, normals, areas = RV.facet_geometry(verts, faces)
+    points = RV.scatterer_points(verts, faces, "centroid", None)
+    intersector = RV.embree_intersector(verts, faces)
     views, ray_count, ray_seconds = [], 0, 0.0
     for view in radar.views:
-        probes = R.probe_points(radar, view)
-        t_vis, (vis, rays) = _best(lambda: R.visibility(verts, faces, probes, intersector))
+        probes = RP.probe_points(radar, view)
+        t_vis, (vis, rays) = _best(lambda: RV.visibility(verts, faces, probes, intersector))
         seen = vis > 0
-        positions = R.aperture_positions(radar, view)
+        positions = RP.aperture_positions(radar, view)
         args = (points[seen], normals[seen], (vis * areas)[seen])
-        t_echo, signal = _best(lambda: R.echo(*args, positions, freqs, radar))
+        t_echo, signal = _best(lambda: RE.echo(*args, positions, freqs, radar))
         signal = signal.reshape(*radar.aperture, radar.n_samples)
         t_img, _ = _best(lambda: view_images(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
         subset = np.linspace(0, len(positions) - 1, DIRECT_ANTENNAS).round().astype(int)
-        t_direct, direct = _best(lambda: R.echo(*args, positions[subset], freqs, radar, method="direct"))
+        t_direct, direct = _best(lambda: RE.echo(*args, positions[subset], freqs, radar, method="direct"))
         production = signal.reshape(len(positions), -1)[subset]
         error = float(np.linalg.norm(production - direct) / np.linalg.norm(direct))
         direct_scaled = t_direct * len(positions) / len(subset)
         # Embree alone: the same rays as the visibility pass, without the numpy around them.
-        centres = R.facet_geometry(verts, faces)[0]
+        centres = RV.facet_geometry(verts, faces)[0]
         to_probe = probes[None] - centres[:, None]
         facet, probe = np.nonzero(np.einsum("fc,fpc->fp", normals, to_probe) > 0)
         directions = to_probe[facet, probe] / np.linalg.norm(to_probe[facet, probe], axis=1, keepdims=True)
-        origins = centres[facet] + R.RAY_OFFSET_MM * normals[facet]
+        origins = centres[facet] + RP.RAY_OFFSET_MM * normals[facet]
         t_rays, _ = _best(lambda: intersector.intersects_any(origins, directions))
         ray_count, ray_seconds = ray_count + rays, ray_seconds + t_rays
         views.append({

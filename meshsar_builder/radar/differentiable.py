@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from .radar import SPEED_OF_LIGHT_M_PER_S, RadarParams
+from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, RadarParams
 
 # Antenna x facet x frequency terms held at once (complex): ~64 MB in complex64.
 TERMS_PER_CHUNK = 1 << 23

@@ -24,14 +24,27 @@ single-sample groups the targets are met exactly. Ids are listed in dataset
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .io import read_json, write_json
-from .seeding import item_rng
-from .shards import read_index
+from meshsar_builder.dataset.shards import read_index
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import read_json, write_json
+from meshsar_builder.pipeline.seeding import item_rng
+
+
+@dataclass(frozen=True)
+class SplitParams:
+    seed: int = 0
+    ratios: dict[str, float] = field(default_factory=lambda: {"train": 0.8, "test": 0.2})
+    group_by: str = "subject"
+
+    def __post_init__(self):
+        check_ratios(self.ratios)
+        if self.group_by not in GROUP_BY:
+            raise ValueError(f"group_by: must be one of {GROUP_BY}, got {self.group_by!r}")
 
 RESERVED = ("seed", "ratios", "group_by")
 GROUP_BY = ("subject", "sample")

@@ -24,10 +24,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
-from .errors import InputError
-from .seeding import item_rng
-from .shards import Sample, Shard, read_index
-from .splits import read_split
+from meshsar_builder.dataset.shards import Sample, Shard, read_index
+from meshsar_builder.dataset.splits import read_split
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.seeding import item_rng
 
 
 def split_ids(root: str | os.PathLike, index: dict, split: str | None, seed: int) -> list[str]:

@@ -15,7 +15,8 @@ import os
 import re
 import types
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
@@ -24,128 +25,24 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from .errors import RecipeError
-from .sources import STRUCTURES
+from meshsar_builder.pipeline.errors import RecipeError
 
-# Recipe table -> the dataclass that defines its keys (imported lazily: the
-# splits and verify commands should not pay for trimesh or torch).
-SECTIONS: dict[str, str] = {
-    "meshing": "meshsar_builder.meshing:MeshingParams",
-    "remesh": "meshsar_builder.remesh:RemeshParams",
-    "registration": "meshsar_builder.registration:RegistrationParams",
-    "ssm": "meshsar_builder.ssm:SSMParams",
-    "radar": "meshsar_builder.radar:RadarParams",
-    "images": "meshsar_builder.sar:ImageParams",
-    "shards": "meshsar_builder.recipe:ShardParams",
-    "splits": "meshsar_builder.recipe:SplitParams",
-}
+# Recipe table -> "module:Class" of the parameter dataclass that defines its keys, and the class
+# of a [[sources]] entry. They are domain code, registered as entry points in pyproject.toml
+# (group meshsar.sections), so the pipeline imports no domain; each is imported only when a
+# recipe is parsed (the splits and verify commands should not pay for trimesh or torch).
+_REGISTERED = {ep.name: ep.value for ep in entry_points(group="meshsar.sections")}
+SOURCES_ENTRY = "sources"
+SECTIONS: dict[str, str] = {name: value for name, value in sorted(_REGISTERED.items()) if name != SOURCES_ENTRY}
 
-KINDS = ("phantom", "mmwhs", "acdc", "nifti")
-SOURCE_STRUCTURES = {
-    "mmwhs": ("lv", "myo", "rv", "la", "ra", "aorta", "pa"),
-    "acdc": ("lv", "myo", "rv"),
-}
 NAME_RE = re.compile(r"^[A-Za-z0-9_-]+$")
-
-
-@dataclass(frozen=True)
-class ShardParams:
-    shard_size: int = 64
-
-    def __post_init__(self):
-        if self.shard_size < 1:
-            raise ValueError(f"shard_size: must be >= 1, got {self.shard_size}")
-
-
-@dataclass(frozen=True)
-class SplitParams:
-    seed: int = 0
-    ratios: dict[str, float] = field(default_factory=lambda: {"train": 0.8, "test": 0.2})
-    group_by: str = "subject"
-
-    def __post_init__(self):
-        from .splits import GROUP_BY, check_ratios
-
-        check_ratios(self.ratios)
-        if self.group_by not in GROUP_BY:
-            raise ValueError(f"group_by: must be one of {GROUP_BY}, got {self.group_by!r}")
-
-
-@dataclass(frozen=True)
-class SourceSpec:
-    """One [[sources]] entry. Empty strings / zero mean 'the default for this kind'."""
-
-    kind: str
-    name: str = ""  # default: phantom_wh / phantom_bv / mmwhs / acdc / nifti
-    anatomy: str = "whole_heart"  # phantom only: whole_heart | biventricular
-    subjects: int = 0  # phantom: how many to generate; real data: at most this many (0 = all)
-    frames: int = 20  # phantom biventricular: frames per cycle
-    voxel_mm: tuple[float, ...] = ()  # phantom: voxel size; default 1 mm (whole heart) or 1.5x1.5x8 (ACDC-like)
-    path: str = ""  # real data folder; relative paths are under $MESHSAR_DATA when set
-    labels: dict[str, int] = field(default_factory=dict)  # nifti: structure name -> label value
-    structures: tuple[str, ...] = ()  # meshed union; default: every structure the source has
-    use: str = ""  # ssm | direct; default: ssm for whole-heart sources, direct otherwise
-
-    def __post_init__(self):
-        if self.kind not in KINDS:
-            raise ValueError(f"kind: must be one of {KINDS}, got {self.kind!r}")
-        if self.anatomy not in ("whole_heart", "biventricular"):
-            raise ValueError(f"anatomy: must be whole_heart or biventricular, got {self.anatomy!r}")
-        biv = self.kind == "acdc" or (self.kind == "phantom" and self.anatomy == "biventricular")
-        whole = self.kind == "mmwhs" or (self.kind == "phantom" and self.anatomy == "whole_heart")
-        default_name = {"phantom": "phantom_wh" if whole else "phantom_bv"}.get(self.kind, self.kind)
-        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen: resolve defaults once)
-        set_("name", self.name or default_name)
-        if not NAME_RE.match(self.name):
-            raise ValueError(f"name: letters, digits, '_' and '-' only, got {self.name!r}")
-        if self.kind == "phantom" and self.subjects < 1:
-            raise ValueError(f"subjects: a phantom source needs subjects >= 1, got {self.subjects}")
-        if self.subjects < 0:
-            raise ValueError(f"subjects: must be >= 0, got {self.subjects}")
-        if self.frames < 2:
-            raise ValueError(f"frames: must be >= 2, got {self.frames}")
-        if self.voxel_mm and (len(self.voxel_mm) != 3 or min(self.voxel_mm) <= 0):
-            raise ValueError(f"voxel_mm: three positive sizes, got {list(self.voxel_mm)}")
-        if self.kind != "phantom":
-            if self.voxel_mm:
-                raise ValueError("voxel_mm: only a phantom source takes a voxel size")
-        else:
-            set_("voxel_mm", tuple(self.voxel_mm or ((1.0, 1.0, 1.0) if whole else (1.5, 1.5, 8.0))))
-        if self.kind == "nifti" and not self.labels:
-            raise ValueError("labels: a nifti source needs a label table, e.g. { lv = 1, myo = 2, rv = 3 }")
-        if self.labels and self.kind != "nifti":
-            raise ValueError(f"labels: only a nifti source takes a label table ({self.kind} has a fixed one)")
-        bad = sorted(set(self.labels) - set(STRUCTURES))
-        if bad:
-            raise ValueError(f"labels: unknown structures {bad}; known: {sorted(STRUCTURES)}")
-        available = tuple(self.labels) if self.kind == "nifti" else SOURCE_STRUCTURES["acdc" if biv else "mmwhs"]
-        bad = sorted(set(self.structures) - set(available))
-        if bad:
-            raise ValueError(f"structures: {bad} not in this source's structures {list(available)}")
-        set_("structures", tuple(self.structures or available))
-        set_("use", self.use or ("ssm" if whole else "direct"))
-        if self.use not in ("ssm", "direct"):
-            raise ValueError(f"use: must be 'ssm' or 'direct', got {self.use!r}")
-
-    @property
-    def subset(self) -> str:
-        """The dataset subset a source feeds: SSM-sampled whole heart, or dynamic/direct meshes."""
-        return "ssm" if self.use == "ssm" else "direct"
-
-    def data_path(self) -> Path:
-        """The real-data folder: `path`, under $MESHSAR_DATA when relative and that is set."""
-        root = os.environ.get("MESHSAR_DATA", "")
-        if not self.path and not root:
-            raise RecipeError(f"[[sources]] {self.name}: path: not given and MESHSAR_DATA is not set")
-        p = Path(self.path) if self.path else Path(root)
-        return p if p.is_absolute() or not root else Path(root) / p
 
 
 @dataclass(frozen=True)
 class Recipe:
     name: str
     seed: int
-    sources: tuple[SourceSpec, ...]
+    sources: tuple[Any, ...]  # the registered [[sources]] class, e.g. dataset.sources.SourceSpec
     sections: dict[str, Any]  # table name -> its parameter dataclass instance
     file: str = ""
     sha256: str = ""
@@ -169,7 +66,8 @@ class Recipe:
 
 
 def section_class(name: str) -> type:
-    module, cls = SECTIONS[name].split(":")
+    """The dataclass registered for recipe table `name` (or SOURCES_ENTRY for [[sources]])."""
+    module, cls = _REGISTERED[name].split(":")
     return getattr(importlib.import_module(module), cls)
 
 
@@ -279,7 +177,7 @@ def parse(text: str, file: str = "<recipe>") -> Recipe:
     seed = _coerce(data.get("seed", 0), int, f"{file}: seed")
     if not isinstance(data["sources"], list) or not data["sources"]:
         raise RecipeError(f"{file}: sources: need at least one [[sources]] table")
-    sources = tuple(build(SourceSpec, s, f"{file}: [[sources]] #{i + 1}") for i, s in enumerate(data["sources"]))
+    sources = tuple(build(section_class(SOURCES_ENTRY), s, f"{file}: [[sources]] #{i + 1}") for i, s in enumerate(data["sources"]))
     names = [s.name for s in sources]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:

@@ -8,6 +8,7 @@ never derived from the sorted values found in a file.
 from __future__ import annotations
 
 import gzip
+import os
 import re
 import zlib
 from dataclasses import asdict, dataclass, field
@@ -16,16 +17,91 @@ from pathlib import Path
 import nibabel as nib
 import numpy as np
 
-from .errors import InputError
-
-# Canonical structure ids (the `vert_labels` values of the dataset); 0 = unlabelled.
-STRUCTURES: dict[str, int] = {"lv": 1, "myo": 2, "rv": 3, "la": 4, "ra": 5, "aorta": 6, "pa": 7}
+from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import InputError, RecipeError
+from meshsar_builder.pipeline.recipe import NAME_RE
 
 # MM-WHS: 421 occurs in some files for the left atrium.
 MMWHS_TABLE: dict[int, str] = {
     205: "myo", 420: "la", 421: "la", 500: "lv", 550: "ra", 600: "rv", 820: "aorta", 850: "pa",
 }
 ACDC_TABLE: dict[int, str] = {1: "rv", 2: "myo", 3: "lv"}
+
+KINDS = ("phantom", "mmwhs", "acdc", "nifti")
+SOURCE_STRUCTURES = {
+    "mmwhs": ("lv", "myo", "rv", "la", "ra", "aorta", "pa"),
+    "acdc": ("lv", "myo", "rv"),
+}
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """One [[sources]] entry. Empty strings / zero mean 'the default for this kind'."""
+
+    kind: str
+    name: str = ""  # default: phantom_wh / phantom_bv / mmwhs / acdc / nifti
+    anatomy: str = "whole_heart"  # phantom only: whole_heart | biventricular
+    subjects: int = 0  # phantom: how many to generate; real data: at most this many (0 = all)
+    frames: int = 20  # phantom biventricular: frames per cycle
+    voxel_mm: tuple[float, ...] = ()  # phantom: voxel size; default 1 mm (whole heart) or 1.5x1.5x8 (ACDC-like)
+    path: str = ""  # real data folder; relative paths are under $MESHSAR_DATA when set
+    labels: dict[str, int] = field(default_factory=dict)  # nifti: structure name -> label value
+    structures: tuple[str, ...] = ()  # meshed union; default: every structure the source has
+    use: str = ""  # ssm | direct; default: ssm for whole-heart sources, direct otherwise
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"kind: must be one of {KINDS}, got {self.kind!r}")
+        if self.anatomy not in ("whole_heart", "biventricular"):
+            raise ValueError(f"anatomy: must be whole_heart or biventricular, got {self.anatomy!r}")
+        biv = self.kind == "acdc" or (self.kind == "phantom" and self.anatomy == "biventricular")
+        whole = self.kind == "mmwhs" or (self.kind == "phantom" and self.anatomy == "whole_heart")
+        default_name = {"phantom": "phantom_wh" if whole else "phantom_bv"}.get(self.kind, self.kind)
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen: resolve defaults once)
+        set_("name", self.name or default_name)
+        if not NAME_RE.match(self.name):
+            raise ValueError(f"name: letters, digits, '_' and '-' only, got {self.name!r}")
+        if self.kind == "phantom" and self.subjects < 1:
+            raise ValueError(f"subjects: a phantom source needs subjects >= 1, got {self.subjects}")
+        if self.subjects < 0:
+            raise ValueError(f"subjects: must be >= 0, got {self.subjects}")
+        if self.frames < 2:
+            raise ValueError(f"frames: must be >= 2, got {self.frames}")
+        if self.voxel_mm and (len(self.voxel_mm) != 3 or min(self.voxel_mm) <= 0):
+            raise ValueError(f"voxel_mm: three positive sizes, got {list(self.voxel_mm)}")
+        if self.kind != "phantom":
+            if self.voxel_mm:
+                raise ValueError("voxel_mm: only a phantom source takes a voxel size")
+        else:
+            set_("voxel_mm", tuple(self.voxel_mm or ((1.0, 1.0, 1.0) if whole else (1.5, 1.5, 8.0))))
+        if self.kind == "nifti" and not self.labels:
+            raise ValueError("labels: a nifti source needs a label table, e.g. { lv = 1, myo = 2, rv = 3 }")
+        if self.labels and self.kind != "nifti":
+            raise ValueError(f"labels: only a nifti source takes a label table ({self.kind} has a fixed one)")
+        bad = sorted(set(self.labels) - set(STRUCTURES))
+        if bad:
+            raise ValueError(f"labels: unknown structures {bad}; known: {sorted(STRUCTURES)}")
+        available = tuple(self.labels) if self.kind == "nifti" else SOURCE_STRUCTURES["acdc" if biv else "mmwhs"]
+        bad = sorted(set(self.structures) - set(available))
+        if bad:
+            raise ValueError(f"structures: {bad} not in this source's structures {list(available)}")
+        set_("structures", tuple(self.structures or available))
+        set_("use", self.use or ("ssm" if whole else "direct"))
+        if self.use not in ("ssm", "direct"):
+            raise ValueError(f"use: must be 'ssm' or 'direct', got {self.use!r}")
+
+    @property
+    def subset(self) -> str:
+        """The dataset subset a source feeds: SSM-sampled whole heart, or dynamic/direct meshes."""
+        return "ssm" if self.use == "ssm" else "direct"
+
+    def data_path(self) -> Path:
+        """The real-data folder: `path`, under $MESHSAR_DATA when relative and that is set."""
+        root = os.environ.get("MESHSAR_DATA", "")
+        if not self.path and not root:
+            raise RecipeError(f"[[sources]] {self.name}: path: not given and MESHSAR_DATA is not set")
+        p = Path(self.path) if self.path else Path(root)
+        return p if p.is_absolute() or not root else Path(root) / p
+
 
 # Refuse volumes whose header declares more voxels than this before reading any data.
 MAX_VOXELS = 1024**3 // 2

@@ -33,10 +33,17 @@ from typing import Any, Callable
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from . import __version__
-from .errors import MeshsarError
-from .io import read_json, remove_stale_temporaries, sha256_file, sha256_json, write_bytes, write_json
-from .recipe import Recipe
+from meshsar_builder import __version__
+from meshsar_builder.pipeline.errors import MeshsarError
+from meshsar_builder.pipeline.io import (
+    read_json,
+    remove_stale_temporaries,
+    sha256_file,
+    sha256_json,
+    write_bytes,
+    write_json,
+)
+from meshsar_builder.pipeline.recipe import Recipe
 
 # A full disk, a read-only or unwritable output folder, an exhausted quota.
 UNWRITABLE = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT}

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from meshsar_builder.errors import MeshError
-from meshsar_builder.io import atomic_path
-from meshsar_builder.registration import surface_distances
-from meshsar_builder.remesh import self_intersecting_faces
+from meshsar_builder.geometry.registration import surface_distances
+from meshsar_builder.geometry.remesh import self_intersecting_faces
+from meshsar_builder.pipeline.errors import MeshError
+from meshsar_builder.pipeline.io import atomic_path
 
 
 @dataclass(frozen=True)

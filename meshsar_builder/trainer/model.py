@@ -19,7 +19,7 @@ import trimesh
 from torch import nn
 from torch.nn import functional as F
 
-from .losses import adjacent_face_pairs, mesh_edges, neighbour_mean
+from meshsar_builder.trainer.losses import adjacent_face_pairs, mesh_edges, neighbour_mean
 
 POOLINGS = ("max", "mean", "std")
 

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .io import read_json, sha256_file
-from .shards import INDEX_NAME, SHARD_DIR, read_index, structure_problems
-from .splits import RESERVED
+from meshsar_builder.dataset.shards import INDEX_NAME, SHARD_DIR, read_index, structure_problems
+from meshsar_builder.dataset.splits import RESERVED
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import read_json, sha256_file
 
 
 def _expected_shapes(index: dict) -> tuple[tuple, int | None]:

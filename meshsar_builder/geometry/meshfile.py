@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from .errors import InputError
-from .io import atomic_path
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import atomic_path
 
 
 def write_ply(path: str | Path, verts: np.ndarray, faces: np.ndarray, labels: np.ndarray | None = None) -> None:

@@ -16,13 +16,13 @@ import numpy as np
 import torch
 import trimesh
 
-from .io import write_json
-from .radar import RadarParams, index_metadata
-from .radar_torch import echo_torch
-from .sar import ImageParams
-from .train import DatasetGeometry, batch_losses, build_model, load_config, step_generator
+from meshsar_builder.pipeline.io import write_json
+from meshsar_builder.radar.differentiable import echo_torch
+from meshsar_builder.radar.imaging import ImageParams
+from meshsar_builder.radar.params import RadarParams, index_metadata
+from meshsar_builder.trainer.train import DatasetGeometry, batch_losses, build_model, load_config, step_generator
 
-CONFIGS = Path(__file__).resolve().parents[1] / "manifests" / "train"
+CONFIGS = Path(__file__).resolve().parents[2] / "manifests" / "train"
 REPEATS = 3
 
 

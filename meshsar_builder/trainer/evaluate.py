@@ -20,13 +20,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .card import plt, render_views, save_figure
-from .data import MeshSARDataset
-from .io import write_bytes, write_json
-from .metrics import COLUMNS, mesh_metrics
-from .model import icosphere_levels
-from .shards import read_index
-from .train import DatasetGeometry, load_run, split_seed
+from meshsar_builder.dataset.card import plt, render_views, save_figure
+from meshsar_builder.dataset.readers import MeshSARDataset
+from meshsar_builder.dataset.shards import read_index
+from meshsar_builder.pipeline.io import write_bytes, write_json
+from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics
+from meshsar_builder.trainer.model import icosphere_levels
+from meshsar_builder.trainer.train import DatasetGeometry, load_run, split_seed
 
 METHODS = ("sar2mesh", "template")
 HIGHER_IS_BETTER = {"dice", "jaccard"}

@@ -1,0 +1,7 @@
+"""Radar physics: parameters and views, visibility, the FMCW echo, SAR imaging, the differentiable echo.
+
+Imports `pipeline` only; torch only in `differentiable`. Modules: `params` (RadarParams,
+view frames, aperture, echo grid), `visibility` (facet geometry, Embree), `echo` (direct
+reference and fast production sums, noise), `imaging` (range migration, view images),
+`render` (one sample, every view), `differentiable` (torch echo for the radar loss).
+"""

@@ -1,0 +1,205 @@
+"""Radar parameters, view frames, the synthetic aperture and the echo grid (DESIGN sections 3-4).
+
+Geometry is in millimetres in the heart frame; frequencies in Hz, delays in s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from meshsar_builder.radar.imaging import ImageParams, image_metadata, invalid
+
+SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
+
+# Rows u, v, w of each preset view (DESIGN section 3): w points from the heart to the radar.
+VIEW_FRAMES = {
+    "anterior": ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
+    "posterior": ((1, 0, 0), (0, 0, 1), (0, -1, 0)),
+    "left": ((0, -1, 0), (0, 0, 1), (-1, 0, 0)),
+    "right": ((0, 1, 0), (0, 0, 1), (1, 0, 0)),
+    "superior": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    "inferior": ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
+}
+SCATTERERS = ("centroid", "random")
+PROBES = ("corners", "centre")
+ECHO_METHODS = ("chebyshev", "direct")
+
+# Offset of a visibility ray's origin along the facet normal: ~100 float32 ulps at
+# heart scale, so Embree never re-hits the facet it starts from.
+RAY_OFFSET_MM = 1e-3
+# Antenna-by-facet-by-frequency terms per chunk of the direct (reference) sum: 4 MiB of
+# complex128 exponentials.
+DIRECT_TERMS_PER_CHUNK = 1 << 18
+
+
+def _as_float(obj, name: str) -> None:
+    """Recipes may write 300 for 300.0: store floats so JSON output does not depend on it."""
+    value = getattr(obj, name)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise invalid(name, "must be a number", value)
+    object.__setattr__(obj, name, float(value))
+
+
+def _int_tuple(obj, name: str, length: int, minimum: int) -> tuple[int, ...]:
+    value = tuple(getattr(obj, name))
+    if len(value) != length or any(isinstance(x, bool) or not isinstance(x, int) for x in value):
+        raise invalid(name, f"must be {length} integers", value)
+    if min(value) < minimum:
+        raise invalid(name, f"entries must be >= {minimum}", value)
+    object.__setattr__(obj, name, value)
+    return value
+
+
+@dataclass(frozen=True)
+class RadarParams:
+    """Echo model and scan of one sample (recipe section [radar]; DESIGN section 4)."""
+
+    f0_hz: float = 77e9
+    slope_hz_per_s: float = 100e12
+    fs_hz: float = 1.6e6
+    n_samples: int = 64
+    t0_s: float = 0.0
+    aperture: tuple[int, ...] = (80, 80)
+    step_mm: float = 2.0
+    z0_mm: float = 300.0
+    views: tuple[str, ...] = ("anterior", "left", "superior")
+    snr_db: float = 30.0
+    rvp: bool = True
+    p: float = 4.0
+    kappa: float = 0.3
+    scatterer: str = "centroid"
+    probes: str = "corners"
+    echo_decimation: tuple[int, ...] = (5, 5, 2)
+    echo_method: str = "chebyshev"
+
+    def __post_init__(self):
+        for name in ("f0_hz", "slope_hz_per_s", "fs_hz", "t0_s", "step_mm", "z0_mm", "snr_db", "p", "kappa"):
+            _as_float(self, name)
+        for name in ("f0_hz", "slope_hz_per_s", "fs_hz", "step_mm", "z0_mm", "p"):
+            if not (0 < getattr(self, name) < math.inf):
+                raise invalid(name, "must be positive and finite", getattr(self, name))
+        if not (0 <= self.t0_s < math.inf):
+            raise invalid("t0_s", "must be >= 0 and finite", self.t0_s)
+        if math.isnan(self.snr_db) or self.snr_db == -math.inf:
+            raise invalid("snr_db", "must be a number or inf (no noise)", self.snr_db)
+        if not 0 <= self.kappa <= 1:
+            raise invalid("kappa", "must lie in [0, 1]", self.kappa)
+        if isinstance(self.n_samples, bool) or not isinstance(self.n_samples, int) or self.n_samples < 2:
+            raise invalid("n_samples", "must be an integer >= 2", self.n_samples)
+        aperture = _int_tuple(self, "aperture", 2, 2)
+        decimation = _int_tuple(self, "echo_decimation", 3, 1)
+        for axis, (size, factor) in enumerate(zip((*aperture, self.n_samples), decimation)):
+            if factor > size:
+                raise invalid("echo_decimation", f"entry {axis} exceeds the grid size {size}", decimation)
+        views = tuple(self.views)
+        if not views or len(set(views)) != len(views):
+            raise invalid("views", "must be a non-empty list without repeats", views)
+        for view in views:
+            if view not in VIEW_FRAMES:
+                raise invalid("views", f"unknown view {view!r} (known: {', '.join(VIEW_FRAMES)})", views)
+        object.__setattr__(self, "views", views)
+        if not isinstance(self.rvp, bool):
+            raise invalid("rvp", "must be true or false", self.rvp)
+        for name, allowed in (("scatterer", SCATTERERS), ("probes", PROBES), ("echo_method", ECHO_METHODS)):
+            if getattr(self, name) not in allowed:
+                raise invalid(name, f"must be one of {', '.join(allowed)}", getattr(self, name))
+
+
+# ---------------------------------------------------------------- views and apertures
+
+
+def view_frame(name: str) -> np.ndarray:
+    """(3, 3) float: rows u, v, w of a preset view (DESIGN section 3)."""
+    try:
+        return np.array(VIEW_FRAMES[name], dtype=np.float64)
+    except KeyError:
+        raise ValueError(f"view: unknown view, got {name!r}") from None
+
+
+def aperture_axes(radar: RadarParams) -> tuple[np.ndarray, np.ndarray]:
+    """Antenna coordinates along u (Nx,) and v (Ny,) in mm, centred on the view axis."""
+    nx, ny = radar.aperture
+    return ((np.arange(nx) - (nx - 1) / 2) * radar.step_mm, (np.arange(ny) - (ny - 1) / 2) * radar.step_mm)
+
+
+def _plane_points(frame: np.ndarray, z0_mm: float, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+    """(len(x) * len(y), 3) points z0 w + x u + y v, row-major over (x, y)."""
+    grid = x_mm[:, None, None] * frame[0] + y_mm[None, :, None] * frame[1] + z0_mm * frame[2]
+    return grid.reshape(-1, 3)
+
+
+def aperture_positions(radar: RadarParams, view: str) -> np.ndarray:
+    """(Nx * Ny, 3) float: antenna positions (mm, heart frame), row-major over (Nx, Ny)."""
+    return _plane_points(view_frame(view), radar.z0_mm, *aperture_axes(radar))
+
+
+def frequencies(radar: RadarParams) -> np.ndarray:
+    """(N,) float: frequency samples f_n = f0 + S (t0 + n / fs) in Hz."""
+    n = np.arange(radar.n_samples)
+    return radar.f0_hz + radar.slope_hz_per_s * (radar.t0_s + n / radar.fs_hz)
+
+
+def probe_points(radar: RadarParams, view: str) -> np.ndarray:
+    """(P, 3) float: visibility probes, the aperture centre (then its four corners for "corners")."""
+    x, y = aperture_axes(radar)
+    centre = _plane_points(view_frame(view), radar.z0_mm, np.zeros(1), np.zeros(1))
+    if radar.probes == "centre":
+        return centre
+    corners = _plane_points(view_frame(view), radar.z0_mm, x[[0, -1]], y[[0, -1]])
+    return np.concatenate([centre, corners])
+
+
+def decimation_indices(size: int, factor: int) -> np.ndarray:
+    """Indices kept when decimating an axis of `size` samples by `factor`.
+
+    size // factor samples `factor` apart, placed so that their mean index is the
+    axis centre (exactly when the parities allow, else half a sample low): the
+    decimated aperture stays centred on the view axis. For frequencies 64 / 2 this
+    keeps n = 0, 2, ..., 62.
+    """
+    count = size // factor
+    start = ((size - 1) - factor * (count - 1)) // 2
+    return start + factor * np.arange(count)
+
+
+def echo_grid(radar: RadarParams) -> dict:
+    """The decimated echo's grid: `frequencies_hz` (Ef,) and per view `positions_mm` (Ex * Ey, 3)."""
+    (nx, ny), (dx, dy, df) = radar.aperture, radar.echo_decimation
+    ix, iy = decimation_indices(nx, dx), decimation_indices(ny, dy)
+    freqs = frequencies(radar)[decimation_indices(radar.n_samples, df)]
+    positions = {
+        view: aperture_positions(radar, view).reshape(nx, ny, 3)[np.ix_(ix, iy)].reshape(-1, 3)
+        for view in radar.views
+    }
+    return {"frequencies_hz": freqs, "positions_mm": positions}
+
+
+def index_metadata(radar: RadarParams, images: ImageParams) -> dict:
+    """The index.json keys this module owns (DESIGN section 7), as plain JSON values.
+
+    `views`, `fov_mm`, `image_size`, `channels`, `radar`, `echo_grid`. An infinite
+    snr_db (no noise) is written as null, since JSON has no infinity.
+    """
+    grid = echo_grid(radar)
+    radar_keys = ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
+                  "z0_mm", "snr_db", "rvp", "p", "kappa", "scatterer", "probes")
+    radar_dict = {key: getattr(radar, key) for key in radar_keys}
+    radar_dict["aperture"] = list(radar.aperture)
+    radar_dict["snr_db"] = radar.snr_db if math.isfinite(radar.snr_db) else None
+    return {
+        "views": [
+            {"name": view, **{axis: row.tolist() for axis, row in zip("uvw", view_frame(view))}}
+            for view in radar.views
+        ],
+        **image_metadata(images),
+        "radar": radar_dict,
+        "echo_grid": {
+            "frequencies_hz": grid["frequencies_hz"].tolist(),
+            "positions_mm": {view: pos.tolist() for view, pos in grid["positions_mm"].items()},
+        },
+    }
+
+
