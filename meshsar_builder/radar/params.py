@@ -23,7 +23,13 @@ VIEW_FRAMES = {
     "superior": ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
     "inferior": ((-1, 0, 0), (0, 1, 0), (0, 0, -1)),
 }
-SCATTERERS = ("centroid", "random")
+# How a facet scatters (DESIGN section 4): "po" its physical-optics integral over the
+# triangle; "centroid" one point scatterer of the facet's area at its centroid; "random"
+# that point drawn uniformly in the facet (seeded per sample).
+FACET_MODELS = ("po", "centroid", "random")
+# Reflectivity pattern g: "lobe" (1 - kappa) x^p + kappa x; "po" x with the physical-optics
+# factor k_n / 2 pi, the textbook monostatic PO model (plate sigma = 4 pi A^2 / lambda^2).
+REFLECTIVITIES = ("lobe", "po")
 PROBES = ("corners", "centre")
 ECHO_METHODS = ("chebyshev", "direct")
 
@@ -70,7 +76,8 @@ class RadarParams:
     rvp: bool = True
     p: float = 4.0
     kappa: float = 0.3
-    scatterer: str = "centroid"
+    facet: str = "po"
+    reflectivity: str = "lobe"
     probes: str = "corners"
     echo_decimation: tuple[int, ...] = (5, 5, 2)
     echo_method: str = "chebyshev"
@@ -103,7 +110,8 @@ class RadarParams:
         object.__setattr__(self, "views", views)
         if not isinstance(self.rvp, bool):
             raise invalid("rvp", "must be true or false", self.rvp)
-        for name, allowed in (("scatterer", SCATTERERS), ("probes", PROBES), ("echo_method", ECHO_METHODS)):
+        for name, allowed in (("facet", FACET_MODELS), ("reflectivity", REFLECTIVITIES), ("probes", PROBES),
+                              ("echo_method", ECHO_METHODS)):
             if getattr(self, name) not in allowed:
                 raise invalid(name, f"must be one of {', '.join(allowed)}", getattr(self, name))
 
@@ -185,7 +193,7 @@ def index_metadata(radar: RadarParams, images: ImageParams) -> dict:
     """
     grid = echo_grid(radar)
     radar_keys = ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
-                  "z0_mm", "snr_db", "rvp", "p", "kappa", "scatterer", "probes")
+                  "z0_mm", "snr_db", "rvp", "p", "kappa", "facet", "reflectivity", "probes")
     radar_dict = {key: getattr(radar, key) for key in radar_keys}
     radar_dict["aperture"] = list(radar.aperture)
     radar_dict["snr_db"] = radar.snr_db if math.isfinite(radar.snr_db) else None
