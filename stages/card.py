@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from collections import defaultdict
 
+import numpy as np
+
 from meshsar_builder.dataset import card
 from meshsar_builder.dataset.shards import INDEX_NAME
 from meshsar_builder.dataset.splits import RESERVED, split_path
@@ -44,6 +46,26 @@ def plan(ctx: Context, results: Results) -> list[Item]:
                  data={"dynamic": dynamic, "timing": timing})]
 
 
+def radar_section(index: dict) -> list[str]:
+    """The card's radar lines: echo model, noise setting, and each view's image noise floor over the samples."""
+    radar = index["radar"]
+    noise = (f"image noise floor {radar['image_snr_db']} dB below the peak (`image_snr_db`)"
+             if radar.get("image_snr_db") is not None else
+             f"{radar['snr_db']} dB per raw sample (`snr_db`)" if radar.get("snr_db") is not None else "none")
+    rows = []
+    floors = [s.get("noise_floor_db") for s in index["samples"].values()]
+    for v, view in enumerate(index["views"]):
+        values = np.array([f[v] for f in floors if f and f[v] is not None], dtype=float)
+        if len(values):
+            rows.append([view["name"], f"{np.median(values):.1f}", f"{values.min():.1f} – {values.max():.1f}"])
+    lines = ["## Radar", "", f"Echo model: facet `{radar.get('facet')}`, reflectivity `{radar.get('reflectivity')}`; "
+             f"noise: {noise}. The image noise floor is the RMS of the noise's own image, in dB below the "
+             "noise-free image's peak; the intensity channel shows 40 dB.", ""]
+    if rows:
+        lines += [card.markdown_table(["view", "noise floor, median (dB)", "range (dB)"], rows), ""]
+    return lines
+
+
 def run(ctx: Context, item: Item) -> dict:
     folder = ctx.stage_dir(NAME)
     index = read_json(ctx.out / INDEX_NAME)
@@ -57,6 +79,7 @@ def run(ctx: Context, item: Item) -> dict:
              "## Samples", "", "Each row: per view the mesh (coloured by structure, same field of view as the images), "
              "then the SAR channels (intensity in dB over the dynamic range; depth along w, red toward the radar).", "",
              "![gallery](gallery.png)", ""]
+    lines += radar_section(index)
     if "ssm_variance.png" in item.outputs:
         report = read_json(ctx.stage_dir("ssm") / "report.json")
         card.ssm_variance_plot(report, folder / "ssm_variance.png")
@@ -90,4 +113,4 @@ def run(ctx: Context, item: Item) -> dict:
     return {"gallery": ids, "counts": index["counts"]}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

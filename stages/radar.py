@@ -7,7 +7,8 @@ scanned from every view of `[radar]`.
 
 Outputs: `radar/<sample>.npz` with `sar` (V, C, H, W) float16, `echo`
 (V, Ex, Ey, Ef) complex64 and `center_mm` (3,) float32; the sidecar holds the
-sample's metadata and per-view figures (visible facets, powers, seconds).
+sample's metadata and per-view figures (visible facets, powers, raw SNR, image
+noise floor, seconds).
 """
 
 from __future__ import annotations
@@ -54,7 +55,10 @@ def run(ctx: Context, item: Item) -> dict:
     out = render_sample(verts - center, faces, ctx.recipe.radar, ctx.recipe.images, rng)
     with atomic_path(ctx.stage_dir(NAME) / f"{item.id}.npz") as tmp:
         np.savez(tmp, sar=out["sar"], echo=out["echo"], center_mm=center.astype(np.float32))
-    return {"meta": item.data, "center_mm": center.tolist(), "views": out["views"]}
+    # The image noise floor per view travels with the sample (shards' meta, the card).
+    meta = {**item.data, "noise_floor_db": [v["noise_floor_db"] for v in out["views"]]}
+    return {"meta": meta, "center_mm": center.tolist(), "views": out["views"]}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+# Version 2: the physical-optics facet echo and the image-domain noise floor (image_snr_db).
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

@@ -24,7 +24,7 @@ FRAMES = np.stack([RP.view_frame(v) for v in RADAR.views])
 def test_projection_lands_on_the_sar_image_of_a_point_scatterer(view):
     torch.set_num_threads(1)
     frame = RP.view_frame(view)
-    echo = RE.echo(POINT[None], frame[2][None], np.ones(1), RP.aperture_positions(RADAR, view),
+    echo = RE.point_echo(POINT[None], frame[2][None], np.ones(1), RP.aperture_positions(RADAR, view),
                   RP.frequencies(RADAR), RADAR).reshape(*RADAR.aperture, RADAR.n_samples)
     image = S.view_images(echo, RP.frequencies(RADAR), *RP.aperture_axes(RADAR), RADAR.z0_mm, IMAGES)[0]
     brightest = np.unravel_index(np.argmax(image), image.shape)

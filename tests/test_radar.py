@@ -1,5 +1,6 @@
 """Radar echo: parameters, views, visibility, echo accuracy, noise and seeding."""
 
+import dataclasses
 import json
 import math
 
@@ -33,7 +34,9 @@ def ellipsoid(subdivisions=2):
     ("views", ("anterior", "lateral"), "views: unknown view"),
     ("step_mm", 0.0, "step_mm: must be positive"),
     ("snr_db", float("nan"), "snr_db"),
-    ("scatterer", "vertex", "scatterer: must be one of"),
+    ("facet", "vertex", "facet: must be one of"),
+    ("reflectivity", "phong", "reflectivity: must be one of"),
+    ("image_snr_db", float("nan"), "image_snr_db"),
     ("echo_decimation", (5, 5, 100), "echo_decimation: entry 2"),
     ("aperture", (80,), "aperture: must be 2 integers"),
     ("kappa", 1.5, "kappa: must lie in [0, 1]"),
@@ -41,6 +44,13 @@ def ellipsoid(subdivisions=2):
 def test_bad_parameters_name_the_field(field, value, words):
     with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):
         RP.RadarParams(**{field: value})
+
+
+def test_one_noise_setting_at_a_time():
+    assert RP.RadarParams().image_snr_db == RP.DEFAULT_IMAGE_SNR_DB and RP.RadarParams().snr_db is None
+    assert RP.RadarParams(snr_db=30).image_snr_db is None
+    with pytest.raises(ValueError, match="set one of snr_db"):
+        RP.RadarParams(snr_db=30.0, image_snr_db=25.0)
 
 
 def test_parameters_accept_recipe_values():
@@ -90,8 +100,9 @@ def test_index_metadata_is_plain_json_with_the_contract_keys():
     text = json.dumps(meta, allow_nan=False)
     assert set(json.loads(text)) >= {"views", "fov_mm", "image_size", "channels", "radar", "echo_grid"}
     assert set(meta["radar"]) == {"f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
-                                  "z0_mm", "snr_db", "rvp", "p", "kappa", "scatterer", "probes"}
-    assert meta["radar"]["snr_db"] is None
+                                  "z0_mm", "snr_db", "image_snr_db", "rvp", "p", "kappa", "facet",
+                                  "reflectivity", "probes"}
+    assert meta["radar"]["snr_db"] is None and meta["radar"]["image_snr_db"] is None
     assert [v["name"] for v in meta["views"]] == ["anterior", "left", "superior"]
     assert len(meta["echo_grid"]["positions_mm"]["left"]) == 16 * 16
 
@@ -153,7 +164,7 @@ def test_single_scatterer_echo_matches_the_formula():
         2j * np.pi * f[None] * tau[:, None] - 1j * np.pi * radar.slope_hz_per_s * tau[:, None] ** 2
     )
     for method in RP.ECHO_METHODS:
-        got = RE.echo(point, normal, [2.5], positions, f, radar, method=method)
+        got = RE.point_echo(point, normal, [2.5], positions, f, radar, method=method)
         np.testing.assert_allclose(got, expected, rtol=2e-6, atol=2e-6 * np.abs(expected).max())
 
 
@@ -162,7 +173,7 @@ def relative_error(a, b):
 
 
 def echo_case(mesh_name, overrides, view="left"):
-    """Arguments of RE.echo for the visible facets of a test mesh, on a 16 x 16 aperture."""
+    """Arguments of RE.echo for the visible facets of a test mesh, on a 16 x 16 aperture; and its keywords."""
     radar = RP.RadarParams(**{"aperture": (16, 16), "step_mm": 5.0, **overrides})
     mesh = {
         "icosphere": lambda: trimesh.creation.icosphere(3, radius=50.0),
@@ -170,31 +181,33 @@ def echo_case(mesh_name, overrides, view="left"):
         "box": lambda: trimesh.creation.box((90.0, 70.0, 110.0)).subdivide().subdivide(),
     }[mesh_name]()
     assert mesh.is_watertight
-    _, normals, areas = RV.facet_geometry(mesh.vertices, mesh.faces)
-    points = RV.scatterer_points(mesh.vertices, mesh.faces, radar.scatterer, np.random.default_rng(1))
+    points = RV.scatterer_points(mesh.vertices, mesh.faces, radar.facet, np.random.default_rng(1))
     vis, _ = RV.visibility(mesh.vertices, mesh.faces, RP.probe_points(radar, view))
     seen = vis > 0
-    return (points[seen], normals[seen], (vis * areas)[seen], RP.aperture_positions(radar, view),
-            RP.frequencies(radar), radar)
+    args = (mesh.triangles[seen], vis[seen], RP.aperture_positions(radar, view), RP.frequencies(radar), radar)
+    return args, {"points": points[seen]}
 
 
 @pytest.mark.parametrize("mesh_name, overrides", [
     ("icosphere", {}),
-    ("icosphere", {"rvp": False, "t0_s": 3e-6, "n_samples": 50}),
-    ("torus", {"scatterer": "random", "p": 2.5, "kappa": 0.1}),
+    ("icosphere", {"facet": "centroid"}),
+    ("icosphere", {"rvp": False, "t0_s": 3e-6, "n_samples": 50, "reflectivity": "po"}),
+    ("torus", {"facet": "random", "p": 2.5, "kappa": 0.1}),
+    ("torus", {"p": 2.5, "kappa": 0.1}),
     ("torus", {"p": 3.0, "n_samples": 256, "z0_mm": 150.0}),  # a 16 GHz sweep: 37 terms
-    ("box", {"n_samples": 7, "f0_hz": 60e9}),
+    ("box", {"n_samples": 16, "f0_hz": 60e9}),  # facets parallel to the aperture: the exact pairs
 ])
 def test_chebyshev_echo_matches_direct(mesh_name, overrides):
-    args = echo_case(mesh_name, overrides)
-    assert relative_error(RE.echo(*args, method="chebyshev"), RE.echo(*args, method="direct")) <= 1e-4
+    args, keywords = echo_case(mesh_name, overrides)
+    fast, direct = RE.echo(*args, method="chebyshev", **keywords), RE.echo(*args, method="direct", **keywords)
+    assert relative_error(fast, direct) <= 1e-6
 
 
 def test_chebyshev_echo_is_deterministic_under_threads():
     """Same bytes on repeats and from concurrent threads (the kernel is serial and releases the GIL)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    args = echo_case("icosphere", {})
+    args, _ = echo_case("icosphere", {})
     first = RE.echo(*args).tobytes()
     with ThreadPoolExecutor(2) as pool:
         results = list(pool.map(lambda _: RE.echo(*args).tobytes(), range(4)))
@@ -210,11 +223,10 @@ def test_chebyshev_echo_bytes_do_not_depend_on_thread_settings():
 
     script = (
         "import hashlib, numpy as np, trimesh\n"
-        "import meshsar_builder.radar.echo as RE, meshsar_builder.radar.params as RP, meshsar_builder.radar.visibility as RV\n"
+        "import meshsar_builder.radar.echo as RE, meshsar_builder.radar.params as RP\n"
         "radar = RP.RadarParams(aperture=(6, 5), n_samples=16)\n"
         "mesh = trimesh.creation.icosphere(2, radius=50.0)\n"
-        "_, normals, areas = RV.facet_geometry(mesh.vertices, mesh.faces)\n"
-        "out = RE.echo(mesh.triangles_center, normals, areas, RP.aperture_positions(radar, 'left'),\n"
+        "out = RE.echo(mesh.triangles, np.ones(len(mesh.faces)), RP.aperture_positions(radar, 'left'),\n"
         "             RP.frequencies(radar), radar)\n"
         "print(hashlib.sha256(out.tobytes()).hexdigest())\n"
     )
@@ -229,24 +241,26 @@ def test_chebyshev_echo_bytes_do_not_depend_on_thread_settings():
 
 
 def test_chebyshev_echo_needs_uniform_frequencies():
-    args = list(echo_case("box", {"n_samples": 7}))
-    args[4] = args[4] * np.linspace(1, 1.01, 7) ** 2
+    args, _ = echo_case("box", {"n_samples": 7})
+    args = list(args)
+    args[3] = args[3] * np.linspace(1, 1.01, 7) ** 2
     with pytest.raises(ValueError, match="uniformly spaced"):
         RE.echo(*args, method="chebyshev")
     RE.echo(*args, method="direct")
 
 
 def test_missing_numba_is_a_clear_error(monkeypatch):
-    monkeypatch.setattr(RE, "_NUMBA_MISSING", "the production radar echo needs numba (pip install numba)")
+    monkeypatch.setattr(RE, "_NUMBA_MISSING", "the radar echo needs numba (pip install numba)")
     with pytest.raises(MeshsarError, match="needs numba"):
-        RE.echo(*echo_case("box", {"n_samples": 7}))
+        RE.echo(*echo_case("box", {"n_samples": 7})[0])
 
 
 def test_echo_without_scatterers_is_zero():
     radar = small_radar()
-    out = RE.echo(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), RP.aperture_positions(radar, "left"),
-                 RP.frequencies(radar), radar)
-    assert out.shape == (120, 24) and not out.any()
+    for facet in RP.FACET_MODELS:
+        out = RE.echo(np.zeros((0, 3, 3)), np.zeros(0), RP.aperture_positions(radar, "left"),
+                      RP.frequencies(radar), dataclasses.replace(radar, facet=facet))
+        assert out.shape == (120, 24) and not out.any()
 
 
 def test_random_scatterers_lie_inside_their_facets():
@@ -262,19 +276,47 @@ def test_random_scatterers_lie_inside_their_facets():
 
 
 @pytest.mark.parametrize("snr_db", [0.0, 12.0, 30.0])
-def test_noise_has_the_asked_snr(snr_db):
-    rng = np.random.default_rng(5)
-    signal = rng.standard_normal((64, 64)) * np.exp(1j * rng.uniform(0, 7, (64, 64)))
-    noisy, noise_power = RE.add_noise(signal, snr_db, np.random.default_rng(6))
-    measured = 10 * np.log10(np.mean(np.abs(signal) ** 2) / np.mean(np.abs(noisy - signal) ** 2))
-    assert abs(measured - snr_db) < 0.5
-    assert noise_power == pytest.approx(np.mean(np.abs(signal) ** 2) / 10 ** (snr_db / 10))
-    assert RE.add_noise(signal, math.inf, None)[0] is signal
+def test_raw_noise_has_the_asked_snr(snr_db):
+    verts, faces = ellipsoid(2)
+    radar = small_radar(snr_db=snr_db, views=("left",))
+    clean = RR.render_sample(verts, faces, dataclasses.replace(radar, snr_db=math.inf), ImageParams(size=16),
+                             np.random.default_rng(5))
+    noisy = RR.render_sample(verts, faces, radar, ImageParams(size=16), np.random.default_rng(5))
+    stats = noisy["views"][0]
+    assert stats["noise_power"] == pytest.approx(stats["signal_power"] / 10 ** (snr_db / 10))
+    assert stats["raw_snr_db"] == pytest.approx(snr_db)
+    added = noisy["echo"].astype(complex) - clean["echo"]
+    measured = 10 * np.log10(stats["signal_power"] / np.mean(np.abs(added) ** 2))
+    assert abs(measured - snr_db) < 1.0  # the decimated echo's 60 samples: within a dB
+    assert clean["views"][0]["noise_floor_db"] is None and clean["views"][0]["noise_power"] == 0
+
+
+@pytest.mark.parametrize("image_snr_db", [15.0, 25.0])
+def test_image_noise_floor_sits_where_asked(image_snr_db):
+    """The image of the added noise alone has its RMS image_snr_db below the noise-free image's peak."""
+    from meshsar_builder.radar.imaging import view_volume
+
+    verts, faces = ellipsoid(2)
+    radar = small_radar(image_snr_db=image_snr_db, views=("anterior",))
+    images = ImageParams(size=16)
+    clean = dataclasses.replace(radar, image_snr_db=math.inf)
+    out = RR.render_sample(verts, faces, radar, images, np.random.default_rng(8))
+    assert out["views"][0]["noise_floor_db"] == pytest.approx(image_snr_db)
+    # Independently: image the noise that the echo carries (full echo rebuilt on a grid without decimation).
+    full = dataclasses.replace(radar, echo_decimation=(1, 1, 1))
+    noisy = RR.render_sample(verts, faces, full, images, np.random.default_rng(8))["echo"][0].astype(complex)
+    noise_free = RR.render_sample(verts, faces, dataclasses.replace(clean, echo_decimation=(1, 1, 1)), images,
+                                  np.random.default_rng(8))["echo"][0].astype(complex)
+    x, y = RP.aperture_axes(radar)
+    f = RP.frequencies(radar)
+    peak = np.abs(view_volume(noise_free, f, x, y, radar.z0_mm, images)).max()
+    rms = np.sqrt(np.mean(np.abs(view_volume(noisy - noise_free, f, x, y, radar.z0_mm, images)) ** 2))
+    assert 20 * np.log10(peak / rms) == pytest.approx(image_snr_db, abs=0.1)
 
 
 def test_render_sample_is_seeded_and_shaped():
     verts, faces = ellipsoid(2)
-    radar = small_radar(scatterer="random", views=("anterior", "superior"))
+    radar = small_radar(facet="random", snr_db=30.0, views=("anterior", "superior"))
     images = ImageParams(size=16)
     first = RR.render_sample(verts, faces, radar, images, np.random.default_rng(11))
     again = RR.render_sample(verts, faces, radar, images, np.random.default_rng(11))
@@ -295,12 +337,11 @@ def test_decimated_echo_is_the_full_echo_on_the_echo_grid():
     verts, faces = ellipsoid(1)
     radar = small_radar(snr_db=math.inf, views=("left",))
     out = RR.render_sample(verts, faces, radar, ImageParams(size=8), np.random.default_rng(0))
-    _, normals, areas = RV.facet_geometry(verts, faces)
     vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "left"))
     grid = RP.echo_grid(radar)
     seen = vis > 0
-    expected = RE.echo(RV.scatterer_points(verts, faces, "centroid", None)[seen], normals[seen], (vis * areas)[seen],
-                      grid["positions_mm"]["left"], grid["frequencies_hz"], radar, method="direct")
+    expected = RE.echo(verts[faces][seen], vis[seen], grid["positions_mm"]["left"], grid["frequencies_hz"], radar,
+                       method="direct")
     np.testing.assert_allclose(out["echo"][0].reshape(expected.shape), expected, rtol=0,
                                atol=1e-5 * np.abs(expected).max())
 
@@ -317,9 +358,7 @@ def test_chebyshev_echo_matches_direct_on_a_phantom_heart(tmp_path):
     verts = surf.verts - (surf.verts.min(axis=0) + surf.verts.max(axis=0)) / 2
     radar = RP.RadarParams(aperture=(16, 16), step_mm=10.0)
     vis, _ = RV.visibility(verts, surf.faces, RP.probe_points(radar, "anterior"))
-    points, normals, areas = RV.facet_geometry(verts, surf.faces)
     seen = vis > 0
-    args = (points[seen], normals[seen], (vis * areas)[seen], RP.aperture_positions(radar, "anterior"),
-            RP.frequencies(radar), radar)
+    args = (verts[surf.faces][seen], vis[seen], RP.aperture_positions(radar, "anterior"), RP.frequencies(radar), radar)
     assert seen.sum() > 1000
-    assert relative_error(RE.echo(*args, method="chebyshev"), RE.echo(*args, method="direct")) <= 1e-4
+    assert relative_error(RE.echo(*args, method="chebyshev"), RE.echo(*args, method="direct")) <= 1e-6

@@ -18,7 +18,7 @@ def reference_with_soft_visibility(verts, faces, positions, freqs, radar, beta):
     to_centre = positions.mean(axis=0) - centres
     cos = np.einsum("fc,fc->f", normals, to_centre) / np.linalg.norm(to_centre, axis=1)
     weights = areas / (1 + np.exp(-beta * cos))
-    return RE.echo(centres, normals, weights, positions, freqs, radar, method="direct")
+    return RE.point_echo(centres, normals, weights, positions, freqs, radar, method="direct")
 
 
 def test_matches_direct_echo_in_float32():

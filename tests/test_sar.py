@@ -18,7 +18,7 @@ POINT = np.array([8.5 * PIXEL_MM + 0.2, -18.5 * PIXEL_MM - 0.15, 13.5 * PIXEL_MM
 def point_echo(view, point=POINT, radar=RADAR):
     """Echo (Nx, Ny, N) of one scatterer facing the radar."""
     frame = RP.view_frame(view)
-    signal = RE.echo(point[None], frame[2][None], np.ones(1), RP.aperture_positions(radar, view),
+    signal = RE.point_echo(point[None], frame[2][None], np.ones(1), RP.aperture_positions(radar, view),
                     RP.frequencies(radar), radar)
     return signal.reshape(*radar.aperture, radar.n_samples)
 

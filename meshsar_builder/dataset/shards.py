@@ -263,13 +263,15 @@ def build_index(*, recipe: str, recipe_sha256: str, code_version: str, metadata:
     shards   : [{file (relative to the build root), n, sha256, sample_ids}] in dataset order.
     metas    : sample id -> its meta (source, subject, subset, ...).
     Adds `samples` (id -> shard position, row, source, subject, subset: what splits and
-    readers need without opening shards) and `n_samples`.
+    readers need without opening shards; and each view's image noise floor, dB below its
+    peak) and `n_samples`.
     """
     samples = {}
     for k, entry in enumerate(shards):
         for row, sid in enumerate(entry["sample_ids"]):
             m = metas[sid]
-            samples[sid] = {"shard": k, "row": row, "source": m["source"], "subject": m["subject"], "subset": m["subset"]}
+            samples[sid] = {"shard": k, "row": row, "source": m["source"], "subject": m["subject"], "subset": m["subset"],
+                            "noise_floor_db": m.get("noise_floor_db")}
     subjects = {}
     for s in samples.values():
         subjects.setdefault(s["subset"], set()).add((s["source"], s["subject"]))

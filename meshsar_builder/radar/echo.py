@@ -1,34 +1,173 @@
-"""
+"""The radar echo of a mesh's facets (DESIGN section 4).
+
 Geometry is in millimetres in the heart frame; frequencies in Hz, delays in s.
-Per view: Embree visibility of every facet from a few probe points on the
-aperture, then the coherent sum over visible facets of
+For every antenna m of a view's synthetic aperture and frequency sample n,
 
-    s(m, n) = sum_k V_k A_k(m) exp(j 2 pi f_n tau_km) [exp(-j pi S tau_km^2)]
+    s(m, n) = sum_k V_k g(cos theta_km) / R_km^2 exp(j 2 pi f_n tau_km) [exp(-j pi S tau_km^2)] F_k(q_kmn)
 
-for every antenna m of the synthetic aperture and frequency sample n, then SAR
-images (sar.py) and the echo decimated for the trainer's radar loss.
+with F_k the physical-optics integral of exp(j q.(x - c_k)) over facet k
+(facet = "po"), or its area (facet = "centroid" / "random": one point scatterer
+per facet). `point_echo` is the same sum for point scatterers; the SAR images
+and the decimated echo of a sample are made in render.py.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 
 from meshsar_builder.pipeline.errors import MeshsarError
-from meshsar_builder.radar.imaging import invalid
+from meshsar_builder.radar.imaging import SPEED_OF_LIGHT_MM_PER_S, invalid
 from meshsar_builder.radar.params import DIRECT_TERMS_PER_CHUNK, ECHO_METHODS, SPEED_OF_LIGHT_M_PER_S, RadarParams
+from meshsar_builder.radar.visibility import triangle_geometry
 
-# ---------------------------------------------------------------- echo
+try:
+    from numba import njit
+except ImportError as _numba_error:  # a declared dependency: fail when the echo is asked for
+    _NUMBA_MISSING = f"the radar echo needs numba (pip install numba); importing it failed: {_numba_error}"
+
+    def njit(*args, **kwargs):
+        def missing(*a, **k):
+            raise MeshsarError(_NUMBA_MISSING)
+
+        return lambda function: missing
+else:
+    _NUMBA_MISSING = None
+
+_TINY = float(np.finfo(np.float64).tiny)
+_KERNEL_OPTIONS = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
+# Below this phase spread k (max b - min b) (rad) the divided difference is summed as
+# its Taylor series about the corners' mean: 18 terms reach 1e-16 there.
+SERIES_SPREAD = 1.0
+SERIES_TERMS = 18
+
+
+# ---------------------------------------------------------------- the facet integral
+#
+# F(q) = int_facet exp(j q.(x - c)) dA is, by the Hermite-Genocchi formula, 2 A times the
+# second divided difference of exp at j alpha_i, alpha_i = q.(p_i - c) at the corners:
+#     F = 2 A sum_i exp(j alpha_i) / prod_{l != i} (j alpha_i - j alpha_l).
+# That sum cancels catastrophically where corners' phases nearly coincide (normal incidence,
+# or an edge across q), so _divided_difference evaluates it robustly: a Taylor series when
+# the spread is small, else the recursion f[a, b, c] = (f[b, c] - f[a, b]) / (c - a) with c
+# the corner farthest from the other two and f[a, b] = e^a phi1(b - a), phi1 computed as a
+# sinc. For the monostatic echo q = 2 k u (u the unit vector from the antenna to c), so
+# alpha_i = k b_i with b_i = 2 u.(p_i - c) (mm): one function of (b, k) serves every k.
+
+
+@njit(inline="always")
+def _phi1(x):
+    """(exp(j x) - 1) / (j x) for real x, exact at 0: exp(j x / 2) sin(x / 2) / (x / 2)."""
+    y = 0.5 * x
+    sinc = 1.0 - y * y / 6.0 if abs(y) < 1e-4 else math.sin(y) / y
+    return complex(math.cos(y) * sinc, math.sin(y) * sinc)
+
+
+@njit(inline="always")
+def _series_coefficients(b0, b1, b2, a):
+    """a (SERIES_TERMS,) <- h_p(b0, b1, b2) / (p + 2)!, the Taylor coefficients of the divided difference.
+
+    h_p, the complete homogeneous polynomials, over one variable, then two and three by
+    h_p <- h_p + b h_{p-1}; then DD[exp](j k b) = sum_p a_p (j k)^p.
+    """
+    a[0] = 1.0
+    for p in range(1, SERIES_TERMS):
+        a[p] = a[p - 1] * b0
+    for p in range(1, SERIES_TERMS):
+        a[p] += b1 * a[p - 1]
+    for p in range(1, SERIES_TERMS):
+        a[p] += b2 * a[p - 1]
+    factorial = 2.0
+    for p in range(SERIES_TERMS):
+        a[p] /= factorial
+        factorial *= p + 3
+
+
+@njit(inline="always")
+def _series_value(a, k):
+    """sum_p a_p (j k)^p by Horner's rule, complex."""
+    z = complex(0.0, k)
+    value = complex(a[SERIES_TERMS - 1], 0.0)
+    for p in range(SERIES_TERMS - 2, -1, -1):
+        value = value * z + a[p]
+    return value
+
+
+@njit(**_KERNEL_OPTIONS)
+def _divided_difference(b0, b1, b2, k, work):
+    """Second divided difference of exp at j k b0, j k b1, j k b2 (b mm, k rad/mm), complex; 1/2 when all equal.
+
+    work : (SERIES_TERMS,) float scratch.
+    """
+    lo, hi = min(b0, min(b1, b2)), max(b0, max(b1, b2))
+    mid = b0 + b1 + b2 - lo - hi
+    if k * (hi - lo) < SERIES_SPREAD:  # the series about the corners' mean
+        mean = (b0 + b1 + b2) / 3.0
+        _series_coefficients(b0 - mean, b1 - mean, b2 - mean, work)
+        return _series_value(work, k) * complex(math.cos(k * mean), math.sin(k * mean))
+    if mid - lo < hi - mid:  # lo, mid the close pair; hi the far corner
+        a, b, c = lo, mid, hi
+    else:
+        a, b, c = hi, mid, lo
+    first = complex(math.cos(k * a), math.sin(k * a)) * _phi1(k * (b - a))   # f[a, b]
+    second = complex(math.cos(k * b), math.sin(k * b)) * _phi1(k * (c - b))  # f[b, c]
+    return (second - first) / complex(0.0, k * (c - a))
+
+
+@njit(**_KERNEL_OPTIONS)
+def _divided_differences(b, k, out):
+    """out (P, N) complex: _divided_difference of b (P, 3) at every k (N,)."""
+    work = np.empty(SERIES_TERMS)
+    for i in range(b.shape[0]):
+        for n in range(k.shape[0]):
+            out[i, n] = _divided_difference(b[i, 0], b[i, 1], b[i, 2], k[n], work)
+
+
+def facet_integral(tri: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Physical-optics integral F(q) = int exp(j q.(x - c)) dA over each triangle, complex (..., K).
+
+    tri : (K, 3, 3) float corners (mm); q : (..., K, 3) float wave vectors (rad/mm).
+    Exact (closed form, robust where corners' phases nearly coincide): the area at q
+    normal to the facet, |F| <= area always.
+    """
+    if _NUMBA_MISSING:
+        raise MeshsarError(_NUMBA_MISSING)
+    tri = np.asarray(tri, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    centres, _, areas = triangle_geometry(tri)
+    alpha = np.einsum("...kc,kic->...ki", q, tri - centres[:, None, :])  # (..., K, 3)
+    out = np.empty((alpha[..., 0].size, 1), dtype=np.complex128)
+    _divided_differences(np.ascontiguousarray(alpha.reshape(-1, 3)), np.ones(1), out)
+    return 2 * areas * out.reshape(alpha.shape[:-1])
+
+
+# ---------------------------------------------------------------- reference (direct) sum
+
+
+def _pattern(radar: RadarParams) -> tuple[float, float]:
+    """(p, kappa) of g: the recipe's lobe, or g(x) = x for reflectivity "po"."""
+    return (1.0, 1.0) if radar.reflectivity == "po" else (radar.p, radar.kappa)
+
+
+def _wavenumbers(freqs: np.ndarray) -> np.ndarray:
+    """k_n = 2 pi f_n / c in rad/mm, (N,)."""
+    return 2 * np.pi * freqs / SPEED_OF_LIGHT_MM_PER_S
+
+
+def _reflectivity_factor(freqs: np.ndarray, radar: RadarParams) -> np.ndarray:
+    """(N,) the physical-optics amplitude k_n / 2 pi (1/mm) for reflectivity "po", else ones."""
+    return freqs / SPEED_OF_LIGHT_MM_PER_S if radar.reflectivity == "po" else np.ones_like(freqs)
 
 
 def _amplitude_and_delay(points, normals, weights, positions, radar: RadarParams):
     """(M, K) amplitude w_k g(cos theta_km) / R_km^2 and round-trip delay tau_km (s).
 
-    R is in mm, so the amplitude is dimensionless (area mm^2 over R^2 mm^2).
-    R^2 comes from |a|^2 - 2 a.c + |c|^2 (a BLAS product): in float64 at heart scale
-    its error is ~1e-14 mm, 1e-13 rad of phase.
+    R is in mm, so the amplitude is w's unit over mm^2. R^2 comes from |a|^2 - 2 a.c + |c|^2
+    (a BLAS product): in float64 at heart scale its error is ~1e-14 mm, 1e-13 rad of phase.
     """
+    p, kappa = _pattern(radar)
     r2 = positions @ (-2.0 * points.T)
     r2 += np.einsum("mc,mc->m", positions, positions)[:, None]
     r2 += np.einsum("kc,kc->k", points, points)[None, :]
@@ -38,45 +177,35 @@ def _amplitude_and_delay(points, normals, weights, positions, radar: RadarParams
     cos -= np.einsum("kc,kc->k", normals, points)[None, :]
     cos /= r
     np.maximum(cos, 0.0, out=cos)
-    # g(x) = (1 - kappa) x^p + kappa x for x > 0; x = 0 already gives g = 0.
-    # An integral p by repeated products: 3x faster than a float power.
-    if float(radar.p).is_integer() and radar.p <= 8:
-        power = cos.copy()
-        for _ in range(int(radar.p) - 1):
-            power *= cos
-    else:
-        power = cos**radar.p
-    power *= 1.0 - radar.kappa
-    cos *= radar.kappa
-    power += cos
-    power *= weights[None, :]
-    power /= r2
-    r *= 2e-3 / SPEED_OF_LIGHT_M_PER_S
-    return power, r
+    amplitude = ((1.0 - kappa) * cos**p + kappa * cos) * weights[None, :] / r2
+    return amplitude, r * (2e-3 / SPEED_OF_LIGHT_M_PER_S), r
 
 
-def _uniform_step(freqs: np.ndarray) -> float:
-    step = (freqs[-1] - freqs[0]) / (len(freqs) - 1) if len(freqs) > 1 else 0.0
-    if not np.allclose(np.diff(freqs), step, rtol=1e-9, atol=0):
-        raise ValueError(f"freqs: the chebyshev echo needs uniformly spaced frequencies, got {freqs!r}")
-    return step
+def _echo_direct(points, normals, weights, offsets, positions, freqs, radar):
+    """The reference sum: every term's phase in float64 and its own complex exponential.
 
-
-def _sum_direct(amp, tau, freqs, radar):
-    """Reference: every term's phase in float64 and its own complex exponential."""
-    cycles = tau[:, :, None] * freqs[None, None, :]
-    if radar.rvp:
-        cycles -= (0.5 * radar.slope_hz_per_s * tau**2)[:, :, None]
-    return np.einsum("mk,mkn->mn", amp, np.exp(2j * np.pi * cycles))
-
-
-def _echo_direct(points, normals, weights, positions, freqs, radar):
-    """The reference sum, antennas in chunks so that memory stays bounded for any M and K."""
+    offsets : (K, 3, 3) corners minus centres for the facet integral, or None for point
+    scatterers. Antennas go in chunks, so that memory stays bounded for any M and K.
+    """
     out = np.zeros((len(positions), len(freqs)), dtype=np.complex128)
+    wavenumbers = _wavenumbers(freqs)
+    factor = _reflectivity_factor(freqs, radar)
     chunk = max(1, DIRECT_TERMS_PER_CHUNK // (len(points) * len(freqs)))
     for start in range(0, len(positions), chunk):
-        amp, tau = _amplitude_and_delay(points, normals, weights, positions[start : start + chunk], radar)
-        out[start : start + chunk] = _sum_direct(amp, tau, freqs, radar)
+        antennas = positions[start : start + chunk]
+        amp, tau, r = _amplitude_and_delay(points, normals, weights, antennas, radar)
+        if offsets is not None:
+            toward = (points[None, :, :] - antennas[:, None, :]) / r[:, :, None]  # (m, K, 3) antenna to facet
+            b = 2 * np.einsum("mkc,kic->mki", toward, offsets)
+        cycles = tau[:, :, None] * freqs[None, None, :]
+        if radar.rvp:
+            cycles -= (0.5 * radar.slope_hz_per_s * tau**2)[:, :, None]
+        terms = amp[:, :, None] * np.exp(2j * np.pi * cycles)
+        if offsets is not None:
+            dd = np.empty((b.shape[0] * b.shape[1], len(freqs)), dtype=np.complex128)
+            _divided_differences(np.ascontiguousarray(b.reshape(-1, 3)), wavenumbers, dd)
+            terms *= 2 * dd.reshape(terms.shape)  # F / area = 2 DD; the area is in the weights
+        out[start : start + chunk] = np.einsum("mkn,n->mn", terms, factor)
     return out
 
 
@@ -95,51 +224,47 @@ def _echo_direct(points, normals, weights, positions, freqs, radar):
 # (the mesh spans a few range cells), so ~14 terms replace the N = 64 samples, and each
 # costs a few real flops per antenna-facet pair; T_l comes from the three-term recurrence.
 #
+# The facet integral enters as three point scatterers per facet. With b_i = 2 u.(p_i - c),
+#     F_k(k_n) = -(2 A / k_n^2) sum_i exp(j k_n b_i) / P_i,  P_i = (b_i - b_l)(b_i - b_l'),
+# so corner i is a scatterer at range R_k + b_i / 2 with the frequency-free weight
+# -2 A / P_i, and the common 1 / k_n^2 multiplies each antenna's finished row. Where some
+# |P_i| < 2 / (CORNER_GAIN_LIMIT k_min^2) (the corners' weights would exceed the area
+# CORNER_GAIN_LIMIT times and cancel), the pair is left out of the series and added exactly
+# per frequency with _divided_difference: facets within ~1 degree of normal incidence, about
+# 1e-4 of the pairs on a heart.
+#
 # The kernels are compiled by numba with fastmath off (no reassociation, no FMA
 # contraction) and loops in a fixed order; every antenna is summed on its own, in one
-# thread, so the bytes do not depend on thread counts or BLAS (the batched matmul this
-# replaced did depend on them). The innermost loops run over the facets of a block with no
-# loop-carried reduction, so LLVM's loop vectorizer makes them SIMD without reordering any
-# sum: each lane keeps its own partial sums, added at the end in a fixed tree. cos / sin
-# are polynomials (below), not libm calls, so that they vectorize too. A lobe power p
-# that is not an integer goes through libm pow, in a loop of its own (slower, still exact).
+# thread, so the bytes do not depend on thread counts or BLAS. The innermost loops run over
+# the scatterers of a block with no loop-carried reduction, so LLVM's loop vectorizer makes
+# them SIMD without reordering any sum: each lane keeps its own partial sums, added at the
+# end in a fixed tree. cos / sin are polynomials (below), not libm calls, so that they
+# vectorize too. A lobe power p that is not an integer goes through libm pow, in a loop of
+# its own (slower, still exact).
 #
-# Measured on one core in one run (2-core machine shared with other jobs; min of 3):
-# 6,400 antennas x 3,460-3,696 visible facets x 64 samples, the three default views of
-# the 100 x 80 x 120 mm ellipsoid (bench_radar), against the direct sum timed on 48
-# antennas and scaled (26-31 s): this 0.14-0.18 s (170-190x; L = 13-14; relative L2
-# error 2-5e-10); the complex64 baby-step giant-step phasors with a batched BLAS matmul
-# that it replaced 0.61-0.86 s (36-44x, error 8e-7); a float64 phasor recurrence
-# re-anchored every 32 samples, fused and vectorized like this kernel, 0.51-0.60 s
-# (43-57x): 64 complex steps per pair against ~14 real ones. Earlier, on 2,850 facets
-# against 0.38 s for the matmul: FINUFFT 1-D type 1 per antenna (plan reused, eps 1e-6)
-# 0.52 s, mostly per-antenna overhead; FINUFFT 2-D type 1 with the antenna as an on-grid
-# coordinate 0.78 s; Jacobi-Anger in float32 numpy 0.39-0.57 s (memory-bound there).
-# Within the kernel: per-pair terms ~40%, the Chebyshev passes ~50%, the rest ~10%. The
-# first call in a process compiles the kernels (~2.5 s) or loads them from numba's cache
-# in __pycache__ (~0.2 s).
+# Measured for the centroid model on one core in one run (2-core machine shared with other
+# jobs; min of 3): 6,400 antennas x 3,460-3,696 visible facets x 64 samples, the three
+# default views of the 100 x 80 x 120 mm ellipsoid, against the direct sum timed on 48
+# antennas and scaled (26-31 s): this 0.14-0.18 s (170-190x; L = 13-14; relative L2 error
+# 2-5e-10); the complex64 baby-step giant-step phasors with a batched BLAS matmul that it
+# replaced 0.61-0.86 s (36-44x, error 8e-7); a float64 phasor recurrence re-anchored every
+# 32 samples, fused and vectorized like this kernel, 0.51-0.60 s (43-57x): 64 complex steps
+# per pair against ~14 real ones. Earlier, on 2,850 facets against 0.38 s for the matmul:
+# FINUFFT 1-D type 1 per antenna (plan reused, eps 1e-6) 0.52 s, mostly per-antenna
+# overhead; FINUFFT 2-D type 1 with the antenna as an on-grid coordinate 0.78 s; Jacobi-Anger
+# in float32 numpy 0.39-0.57 s (memory-bound there). The first call in a process compiles
+# the kernels or loads them from numba's cache in __pycache__.
 
-try:
-    from numba import njit
-except ImportError as _numba_error:  # a declared dependency: fail when the echo is asked for
-    _NUMBA_MISSING = f"the production radar echo needs numba (pip install numba); importing it failed: {_numba_error}"
-
-    def njit(*args, **kwargs):
-        def missing(*a, **k):
-            raise MeshsarError(_NUMBA_MISSING)
-
-        return lambda function: missing
-else:
-    _NUMBA_MISSING = None
-
-# Facets per block of the vectorized loops: the block's working set (5 + 2 L arrays of
-# this many float64) stays in L1 cache. A power of two: the lanes are added as a tree.
-FACETS_PER_BLOCK = 256
+# Scatterers per block of the vectorized loops (a power of two: the lanes are added as a
+# tree); the facet integral fills a block with the three corners of LANES // 3 facets.
+LANES = 256
 # Truncation of the Chebyshev series (see above); measured relative L2 error against the
-# direct sum ~1e-9, five orders below the 1e-4 that DESIGN section 4 allows.
-CHEBYSHEV_TOLERANCE = 1e-8
-_TINY = float(np.finfo(np.float64).tiny)
-_KERNEL_OPTIONS = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
+# direct sum ~1e-9, five orders below the 1e-4 that DESIGN section 4 allows (1e-10 costs one
+# term more than 1e-8 and lets the corner weights grow 100 times larger, see below).
+CHEBYSHEV_TOLERANCE = 1e-10
+# Largest |corner weight| / area kept in the series (see above): the series' relative error
+# 1e-10 grows at most to ~3e-6 of such a facet's integral.
+CORNER_GAIN_LIMIT = 1e4
 
 
 @njit(inline="always")
@@ -154,10 +279,19 @@ def _cos_sin(cycles):
     return c * c - s * s, 2.0 * c * s
 
 
+@njit(inline="always")
+def _integer_power(x, p_int):
+    """x ** p_int for 0 <= p_int < 16 by products (no libm call, so loops stay SIMD)."""
+    x2 = x * x
+    x4 = x2 * x2
+    return ((x if p_int & 1 else 1.0) * (x2 if p_int & 2 else 1.0)
+            * (x4 if p_int & 4 else 1.0) * (x4 * x4 if p_int & 8 else 1.0))
+
+
 @njit(**_KERNEL_OPTIONS)
 def _range_bounds(facets, positions, low, high):
-    """Per antenna, the least and greatest distance to a facet (mm) into low, high (M,)."""
-    n_facets, block = facets.shape[1], FACETS_PER_BLOCK
+    """Per antenna, the least and greatest distance to a facet's point (mm) into low, high (M,)."""
+    n_facets, block = facets.shape[1], LANES
     r2 = np.empty(block)
     lo = np.empty(block)
     hi = np.empty(block)
@@ -183,60 +317,122 @@ def _range_bounds(facets, positions, low, high):
 
 @njit(**_KERNEL_OPTIONS)
 def _chebyshev_echo(facets, positions, centre_mm, inv_half_mm, tau_per_mm, f_centre, half_slope, p, p_int,
-                    kappa, coef_re, coef_im, cycles_per_mm, n_centre, out):
+                    kappa, flag_limit, coef_re, coef_im, cycles_per_mm, n_centre, freqs, wavenumbers, factor,
+                    reflectivity, out):
     """Echo of every antenna into out (M, 2 N) float64 (a complex128 (M, N) viewed as floats).
 
-    facets : (7, K) rows x, y, z, nx, ny, nz, weight; centre_mm : (M,) R_m; coef_re, coef_im :
-    (L, N) B_l(n'). p_int >= 0: the lobe power p is that integer (< 16), done by products.
+    facets : (7, K) rows x, y, z, nx, ny, nz, weight for point scatterers, or (13, K) with the
+    corner offsets p_0 - c, p_1 - c (rows 7-12) for the facet integral; centre_mm : (M,) R_m;
+    coef_re, coef_im : (L, N) B_l(n'); freqs, wavenumbers (rad/mm), factor, reflectivity : (N,):
+    each finished row is multiplied by factor, and a pair added exactly carries reflectivity.
+    p_int >= 0: the lobe power p is that integer (< 16), done by products.
     """
-    n_facets, block = facets.shape[1], FACETS_PER_BLOCK
+    po = facets.shape[0] == 13
+    n_facets = facets.shape[1]
+    per_block = LANES // 3 if po else LANES
     n_terms, n_samples = coef_re.shape
-    dist = np.empty(block)
-    cos_theta = np.empty(block)
-    lobe = np.empty(block)
-    t = np.empty(block)
-    c_re = np.empty(block)
-    c_im = np.empty(block)
-    t_even = np.empty(block)  # T_l(t) of the last even l, then of the last odd l
-    t_odd = np.empty(block)
-    acc_re = np.empty((n_terms, block))  # per lane partial sums of G_l
-    acc_im = np.empty((n_terms, block))
+    dist = np.empty(per_block)
+    cos_theta = np.empty(per_block)
+    lobe = np.empty(per_block)
+    b_0 = np.empty(per_block)
+    b_1 = np.empty(per_block)
+    exact = np.empty(per_block)
+    t = np.zeros(LANES)
+    c_re = np.zeros(LANES)
+    c_im = np.zeros(LANES)
+    t_even = np.empty(LANES)  # T_l(t) of the last even l, then of the last odd l
+    t_odd = np.empty(LANES)
+    acc_re = np.empty((n_terms, LANES))  # per lane partial sums of G_l
+    acc_im = np.empty((n_terms, LANES))
     s_re = np.empty(n_samples)
     s_im = np.empty(n_samples)
     d_re = np.empty(n_samples)
     d_im = np.empty(n_samples)
+    flagged = np.empty(n_facets, dtype=np.int64)
+    work = np.empty(SERIES_TERMS)
+    k_max = wavenumbers.max()
     for m in range(positions.shape[0]):
         ax, ay, az, r_m = positions[m, 0], positions[m, 1], positions[m, 2], centre_mm[m]
         acc_re[:] = 0.0
         acc_im[:] = 0.0
-        for start in range(0, n_facets, block):
-            px, py, pz = facets[0, start:start + block], facets[1, start:start + block], facets[2, start:start + block]
-            nx, ny, nz = facets[3, start:start + block], facets[4, start:start + block], facets[5, start:start + block]
-            weight = facets[6, start:start + block]
-            size = px.shape[0]
-            for k in range(size):  # distance and cos(theta) of each pair
-                dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
-                r = math.sqrt(max(dx * dx + dy * dy + dz * dz, _TINY))
-                dist[k] = r
-                cos_theta[k] = max((nx[k] * dx + ny[k] * dy + nz[k] * dz) / r, 0.0)
+        n_flagged = 0
+        for start in range(0, n_facets, per_block):
+            stop = min(start + per_block, n_facets)
+            size = stop - start
+            px, py, pz = facets[0, start:stop], facets[1, start:stop], facets[2, start:stop]
+            nx, ny, nz = facets[3, start:stop], facets[4, start:stop], facets[5, start:stop]
+            weight = facets[6, start:stop]
+            if po:  # distance, cos(theta) and b_i = 2 u.(p_i - c), u from the antenna to the facet
+                ox0, oy0, oz0 = facets[7, start:stop], facets[8, start:stop], facets[9, start:stop]
+                ox1, oy1, oz1 = facets[10, start:stop], facets[11, start:stop], facets[12, start:stop]
+                for k in range(size):
+                    dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
+                    r = math.sqrt(max(dx * dx + dy * dy + dz * dz, _TINY))
+                    inv_r = 1.0 / r
+                    dist[k] = r
+                    cos_theta[k] = max((nx[k] * dx + ny[k] * dy + nz[k] * dz) * inv_r, 0.0)
+                    b_0[k] = -2.0 * inv_r * (dx * ox0[k] + dy * oy0[k] + dz * oz0[k])
+                    b_1[k] = -2.0 * inv_r * (dx * ox1[k] + dy * oy1[k] + dz * oz1[k])
+            else:  # distance and cos(theta) of each pair
+                for k in range(size):
+                    dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
+                    r = math.sqrt(max(dx * dx + dy * dy + dz * dz, _TINY))
+                    dist[k] = r
+                    cos_theta[k] = max((nx[k] * dx + ny[k] * dy + nz[k] * dz) / r, 0.0)
             if p_int >= 0:  # not inside the loop: pow is a libm call, which would keep it scalar
                 for k in range(size):
-                    x = cos_theta[k]
-                    x2 = x * x
-                    x4 = x2 * x2
-                    lobe[k] = ((x if p_int & 1 else 1.0) * (x2 if p_int & 2 else 1.0)
-                               * (x4 if p_int & 4 else 1.0) * (x4 * x4 if p_int & 8 else 1.0))
+                    lobe[k] = _integer_power(cos_theta[k], p_int)
             else:
                 for k in range(size):
                     lobe[k] = cos_theta[k] ** p
-            for k in range(size):  # amplitude, phase at f_centre and t of each pair
-                r = dist[k]
-                amp = weight[k] * ((1.0 - kappa) * lobe[k] + kappa * cos_theta[k]) / (r * r)
-                tau = r * tau_per_mm
-                cos, sin = _cos_sin(tau * (f_centre - half_slope * tau))
-                c_re[k] = amp * cos
-                c_im[k] = amp * sin
-                t[k] = (r - r_m) * inv_half_mm
+            if po:
+                if size < per_block:  # the last block: its unused lanes must add nothing
+                    c_re[:] = 0.0
+                    c_im[:] = 0.0
+                    t[:] = 0.0
+                for k in range(size):  # three corner scatterers per pair, in lanes k, k + B, k + 2 B
+                    r = dist[k]
+                    amp = -2.0 * weight[k] * ((1.0 - kappa) * lobe[k] + kappa * cos_theta[k]) / (r * r)
+                    tau = r * tau_per_mm
+                    rvp = half_slope * tau * tau
+                    b0 = b_0[k]
+                    b1 = b_1[k]
+                    b2 = -b0 - b1
+                    p0 = (b0 - b1) * (b0 - b2)
+                    p1 = (b1 - b0) * (b1 - b2)
+                    p2 = (b2 - b0) * (b2 - b1)
+                    close = min(abs(p0), min(abs(p1), abs(p2))) < flag_limit
+                    exact[k] = 1.0 if close else 0.0
+                    amp = 0.0 if close else amp / (p0 * p1 * p2)  # one division for the three weights
+                    w0 = amp * p1 * p2
+                    w1 = amp * p0 * p2
+                    w2 = amp * p0 * p1
+                    cos, sin = _cos_sin((tau + 0.5 * b0 * tau_per_mm) * f_centre - rvp)
+                    c_re[k] = w0 * cos
+                    c_im[k] = w0 * sin
+                    t[k] = (r + 0.5 * b0 - r_m) * inv_half_mm
+                    cos, sin = _cos_sin((tau + 0.5 * b1 * tau_per_mm) * f_centre - rvp)
+                    c_re[k + per_block] = w1 * cos
+                    c_im[k + per_block] = w1 * sin
+                    t[k + per_block] = (r + 0.5 * b1 - r_m) * inv_half_mm
+                    cos, sin = _cos_sin((tau + 0.5 * b2 * tau_per_mm) * f_centre - rvp)
+                    c_re[k + 2 * per_block] = w2 * cos
+                    c_im[k + 2 * per_block] = w2 * sin
+                    t[k + 2 * per_block] = (r + 0.5 * b2 - r_m) * inv_half_mm
+                for k in range(size):  # scalar, rare: the pairs to add exactly
+                    if exact[k] != 0.0:
+                        flagged[n_flagged] = start + k
+                        n_flagged += 1
+                size = LANES
+            else:
+                for k in range(size):  # amplitude, phase at f_centre and t of each pair
+                    r = dist[k]
+                    amp = weight[k] * ((1.0 - kappa) * lobe[k] + kappa * cos_theta[k]) / (r * r)
+                    tau = r * tau_per_mm
+                    cos, sin = _cos_sin(tau * (f_centre - half_slope * tau))
+                    c_re[k] = amp * cos
+                    c_im[k] = amp * sin
+                    t[k] = (r - r_m) * inv_half_mm
             a0_re, a0_im = acc_re[0], acc_im[0]
             for k in range(size):  # l = 0
                 a0_re[k] += c_re[k]
@@ -265,7 +461,7 @@ def _chebyshev_echo(facets, positions, centre_mm, inv_half_mm, tau_per_mm, f_cen
                     even = 2.0 * t[k] * t_odd[k] - t_even[k]
                     e_re[k] += c_re[k] * even
                     e_im[k] += c_im[k] * even
-        width = block  # add the lanes: a fixed tree of vectorized halvings
+        width = LANES  # add the lanes: a fixed tree of vectorized halvings
         while width > 1:
             width //= 2
             for l in range(n_terms):
@@ -281,91 +477,158 @@ def _chebyshev_echo(facets, positions, centre_mm, inv_half_mm, tau_per_mm, f_cen
             for n in range(n_samples):
                 s_re[n] += g_re * b_re[n] - g_im * b_im[n]
                 s_im[n] += g_re * b_im[n] + g_im * b_re[n]
-        shift = r_m * cycles_per_mm  # demodulate: exp(j 2 pi x_m n')
+        shift = r_m * cycles_per_mm  # demodulate: exp(j 2 pi x_m n'), then the common factor
         for n in range(n_samples):
             cos, sin = _cos_sin(shift * (n - n_centre))
-            d_re[n] = cos
-            d_im[n] = sin
+            d_re[n] = cos * factor[n]
+            d_im[n] = sin * factor[n]
         row = out[m]
         for n in range(n_samples):
             row[2 * n] = s_re[n] * d_re[n] - s_im[n] * d_im[n]
             row[2 * n + 1] = s_re[n] * d_im[n] + s_im[n] * d_re[n]
+        for i in range(n_flagged):  # the pairs left out of the series, summed term by term
+            k = flagged[i]
+            dx, dy, dz = ax - facets[0, k], ay - facets[1, k], az - facets[2, k]
+            r = math.sqrt(max(dx * dx + dy * dy + dz * dz, _TINY))
+            x = max((facets[3, k] * dx + facets[4, k] * dy + facets[5, k] * dz) / r, 0.0)
+            power = _integer_power(x, p_int) if p_int >= 0 else x**p
+            amp = 2.0 * facets[6, k] * ((1.0 - kappa) * power + kappa * x) / (r * r)
+            b0 = -2.0 * (dx * facets[7, k] + dy * facets[8, k] + dz * facets[9, k]) / r
+            b1 = -2.0 * (dx * facets[10, k] + dy * facets[11, k] + dz * facets[12, k]) / r
+            b2 = -b0 - b1
+            tau = r * tau_per_mm
+            series = k_max * (max(b0, max(b1, b2)) - min(b0, min(b1, b2))) < SERIES_SPREAD
+            if series:  # near normal incidence, the usual case: one set of coefficients for all k
+                _series_coefficients(b0, b1, b2, work)
+            for n in range(n_samples):
+                cos, sin = _cos_sin(tau * (freqs[n] - half_slope * tau))
+                dd = _series_value(work, wavenumbers[n]) if series else _divided_difference(
+                    b0, b1, b2, wavenumbers[n], work)
+                term = amp * reflectivity[n] * dd
+                row[2 * n] += term.real * cos - term.imag * sin
+                row[2 * n + 1] += term.real * sin + term.imag * cos
 
 
 def _chebyshev_coefficients(omega: np.ndarray, tolerance: float) -> np.ndarray:
-    """(L, N) complex B_l = eps_l j^l J_l(omega_n), L the fewest terms whose tail is below tolerance."""
+    """(L, N) complex B_l = eps_l j^l J_l(omega_n), L the fewest terms whose tail is below tolerance.
+
+    J_l(w) decays faster than exponentially once l exceeds w by a few w^(1/3), so the
+    orders searched reach w + 20 w^(1/3) + 64; a tail that has not converged there is an
+    error, never a silent cut.
+    """
     from scipy.special import jv
 
     w_max = float(np.abs(omega).max())
-    orders = np.arange(int(w_max) + 64)
+    orders = np.arange(int(w_max + 20 * w_max ** (1 / 3)) + 64)
     bound = np.abs(jv(orders, w_max)) * np.where(orders == 0, 1.0, 2.0)
     tail = np.cumsum(bound[::-1])[::-1]  # tail[L] = sum over l >= L
-    n_terms = max(int(np.argmax(tail <= tolerance)), 1)
+    converged = np.flatnonzero(tail <= tolerance)
+    if len(converged) == 0:
+        raise MeshsarError(f"chebyshev echo: the Jacobi-Anger series did not converge to {tolerance:g} within "
+                           f"{len(orders)} terms (w_max = {w_max:.1f}); use echo_method = \"direct\"")
+    n_terms = max(int(converged[0]), 1)
     l = orders[:n_terms, None]
     # J_l(-w) = (-1)^l J_l(w): evaluate at |w| and restore the sign.
     bessel = jv(l, np.abs(omega)[None, :]) * np.where(omega[None, :] < 0, (-1.0) ** l, 1.0)
     return np.where(l == 0, 1.0, 2.0) * (1j**l) * bessel
 
 
-def _echo_chebyshev(points, normals, weights, positions, freqs, radar):
-    """The production echo: the range bounds, the series' coefficients, then the kernel."""
+def _uniform_step(freqs: np.ndarray) -> float:
+    step = (freqs[-1] - freqs[0]) / (len(freqs) - 1) if len(freqs) > 1 else 0.0
+    if not np.allclose(np.diff(freqs), step, rtol=1e-9, atol=0):
+        raise ValueError(f"freqs: the chebyshev echo needs uniformly spaced frequencies, got {freqs!r}")
+    return step
+
+
+def _echo_chebyshev(points, normals, weights, offsets, positions, freqs, radar):
+    """The production echo: the range bounds, the series' coefficients, then the kernel.
+
+    Falls back to the direct sum (with a warning naming the range span) when the series
+    would need more terms than there are frequency samples: it would be slower than that.
+    """
     if _NUMBA_MISSING:
         raise MeshsarError(_NUMBA_MISSING)
     n = len(freqs)
     df = _uniform_step(freqs)
-    facets = np.ascontiguousarray(np.concatenate([points.T, normals.T, weights[None, :]]))
+    rows = [points.T, normals.T, weights[None, :]]
+    reach = 0.0  # how far a corner scatterer's range can lie from its facet's centre
+    if offsets is not None:
+        rows += [offsets[:, 0].T, offsets[:, 1].T]
+        reach = float(np.linalg.norm(offsets, axis=2).max())
+    facets = np.ascontiguousarray(np.concatenate(rows))
     positions = np.ascontiguousarray(positions)
     low, high = np.empty(len(positions)), np.empty(len(positions))
     _range_bounds(facets, positions, low, high)
     centre = (low + high) / 2
-    half = max(float(np.max(high - low)) / 2, 1e-6)  # mm; a floor for a single range
+    half = max(float(np.max(high - low)) / 2 + reach, 1e-6)  # mm; a floor for a single range
     tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
     cycles_per_mm = df * tau_per_mm
     n_centre = (n - 1) / 2
     coef = _chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre),
                                    CHEBYSHEV_TOLERANCE)
-    p = float(radar.p)
-    p_int = int(p) if p.is_integer() and p < 16 else -1
+    if len(coef) > n:
+        warnings.warn(f"chebyshev echo: a range span of {2 * half:.0f} mm needs {len(coef)} series terms for "
+                      f"{n} frequency samples; using the direct sum", stacklevel=3)
+        return _echo_direct(points, normals, weights, offsets, positions, freqs, radar)
+    p, kappa = _pattern(radar)
+    p_int = int(p) if float(p).is_integer() and p < 16 else -1
+    wavenumbers = _wavenumbers(freqs)
+    reflectivity = _reflectivity_factor(freqs, radar)
+    factor = reflectivity / wavenumbers**2 if offsets is not None else reflectivity
+    flag_limit = 2.0 / (CORNER_GAIN_LIMIT * float(wavenumbers.min()) ** 2)
     out = np.empty((len(positions), n), dtype=np.complex128)
     _chebyshev_echo(facets, positions, centre, 1.0 / half, tau_per_mm, freqs[0] + df * n_centre,
-                    0.5 * radar.slope_hz_per_s if radar.rvp else 0.0, p, p_int, float(radar.kappa),
+                    0.5 * radar.slope_hz_per_s if radar.rvp else 0.0, float(p), p_int, float(kappa), flag_limit,
                     np.ascontiguousarray(coef.real), np.ascontiguousarray(coef.imag), cycles_per_mm, n_centre,
-                    out.view(np.float64))
+                    freqs, wavenumbers, factor, reflectivity, out.view(np.float64))
     return out
 
 
-def echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, positions: np.ndarray,
-         freqs: np.ndarray, radar: RadarParams, method: str | None = None) -> np.ndarray:
-    """Noise-free echo s(m, n) of scatterers (DESIGN section 4), complex128 (M, N).
-
-    points : (K, 3) float mm, one scatterer per facet; normals : (K, 3) float, unit;
-    weights : (K,) float, visibility times facet area (mm^2);
-    positions : (M, 3) float mm, antennas; freqs : (N,) float Hz (uniform for "chebyshev").
-    method : "direct" (reference) or "chebyshev" (production, relative L2 error ~1e-9);
-    default radar.echo_method. "chebyshev" gives the same bytes for the same arguments
-    whatever the thread settings; an antenna's last bits depend on the other antennas of
-    the call (through the common range half-width), not on how the call is scheduled.
-    """
+def _prepared(positions, freqs, method, radar):
     method = radar.echo_method if method is None else method
     if method not in ECHO_METHODS:
         raise invalid("method", f"must be one of {', '.join(ECHO_METHODS)}", method)
-    points, normals, positions = (np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in (points, normals, positions))
-    weights, freqs = np.asarray(weights, dtype=np.float64), np.asarray(freqs, dtype=np.float64)
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    freqs = np.asarray(freqs, dtype=np.float64)
+    return positions, freqs, (_echo_chebyshev if method == "chebyshev" else _echo_direct)
+
+
+def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, positions: np.ndarray,
+               freqs: np.ndarray, radar: RadarParams, method: str | None = None) -> np.ndarray:
+    """Noise-free echo s(m, n) of point scatterers (DESIGN section 4), complex128 (M, N).
+
+    points : (K, 3) float mm; normals : (K, 3) float, unit; weights : (K,) float (mm^2: a
+    facet's visibility times its area); positions : (M, 3) float mm, antennas; freqs : (N,)
+    float Hz (uniform for "chebyshev"). method : "direct" (reference) or "chebyshev"
+    (production, relative L2 error ~1e-9); default radar.echo_method. "chebyshev" gives the
+    same bytes for the same arguments whatever the thread settings; an antenna's last bits
+    depend on the other antennas of the call (through the common range half-width), not on
+    how the call is scheduled.
+    """
+    positions, freqs, summer = _prepared(positions, freqs, method, radar)
+    points, normals = (np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in (points, normals))
+    weights = np.asarray(weights, dtype=np.float64)
     if len(points) == 0 or len(positions) == 0:
         return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
-    summer = _echo_chebyshev if method == "chebyshev" else _echo_direct
-    return summer(points, normals, weights, positions, freqs, radar)
+    return summer(points, normals, weights, None, positions, freqs, radar)
 
 
-def add_noise(signal: np.ndarray, snr_db: float, rng: np.random.Generator) -> tuple[np.ndarray, float]:
-    """signal plus complex white Gaussian noise `snr_db` below its mean power; and that noise power.
+def echo(tri: np.ndarray, visibility: np.ndarray, positions: np.ndarray, freqs: np.ndarray, radar: RadarParams,
+         method: str | None = None, points: np.ndarray | None = None) -> np.ndarray:
+    """Noise-free echo s(m, n) of a mesh's facets under radar.facet (DESIGN section 4), complex128 (M, N).
 
-    inf adds nothing (and draws nothing from rng).
+    tri : (K, 3, 3) float mm, corners counter-clockwise seen from outside; visibility : (K,)
+    float V_k in [0, 1]; positions : (M, 3) antennas, mm; freqs : (N,) Hz. facet "po": each
+    facet's physical-optics integral; "centroid" / "random": a point scatterer of the
+    facet's area at points (K, 3) (default the centroids). method as in point_echo.
     """
-    if math.isinf(snr_db):
-        return signal, 0.0
-    noise_power = float(np.mean(np.abs(signal) ** 2)) / 10 ** (snr_db / 10)
-    noise = rng.standard_normal((*signal.shape, 2)) @ np.array([1.0, 1.0j])
-    return signal + math.sqrt(noise_power / 2) * noise, noise_power
-
+    tri = np.asarray(tri, dtype=np.float64).reshape(-1, 3, 3)
+    centres, normals, areas = triangle_geometry(tri)
+    weights = np.asarray(visibility, dtype=np.float64) * areas
+    if radar.facet != "po":
+        return point_echo(centres if points is None else points, normals, weights, positions, freqs, radar, method)
+    positions, freqs, summer = _prepared(positions, freqs, method, radar)
+    if len(tri) == 0 or len(positions) == 0:
+        return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
+    return summer(centres, normals, weights, tri - centres[:, None, :], positions, freqs, radar)
 

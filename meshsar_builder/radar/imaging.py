@@ -159,19 +159,27 @@ def peak_range(magnitude: np.ndarray, d_mm: np.ndarray) -> tuple[np.ndarray, np.
     return peak, d_mm[best] + offset * step
 
 
-def view_images(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, z0_mm: float,
+def view_volume(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, z0_mm: float,
                 images: ImageParams) -> np.ndarray:
-    """The view's channels (C, H, W) float32 on the DESIGN image grid.
+    """Complex reflectivity (S, H, W) complex64 of a view on the DESIGN image grid and its range slices.
 
-    echo : (Nx, Ny, Nf) complex with antennas at x_mm, y_mm (mm along u, v) at
-    distance z0_mm from the heart centre. `intensity`: max over range of |image| in
-    dB below the view's maximum, clipped to the dynamic range, scaled to [0, 1].
-    `depth`: the w coordinate of that maximum over fov/2, 0 where intensity < 0.1.
+    echo : (Nx, Ny, Nf) complex with antennas at x_mm, y_mm (mm along u, v) at distance
+    z0_mm from the heart centre. Linear in echo: the image of signal plus noise is the
+    sum of their images.
     """
     u, v = pixel_centres(images.size, images.fov_mm)
+    return focus(echo, freqs, x_mm, y_mm, u, v, range_slices(z0_mm, images.fov_mm, freqs), images.window)
+
+
+def volume_images(volume: np.ndarray, freqs: np.ndarray, z0_mm: float, images: ImageParams) -> np.ndarray:
+    """The view's channels (C, H, W) float32 from its complex volume (S, H, W) (view_volume).
+
+    `intensity`: max over range of |image| in dB below the view's maximum, clipped to the
+    dynamic range, scaled to [0, 1]. `depth`: the w coordinate of that maximum over
+    fov/2, 0 where intensity < 0.1.
+    """
     d = range_slices(z0_mm, images.fov_mm, freqs)
-    magnitude = np.abs(focus(echo, freqs, x_mm, y_mm, u, v, d, images.window)).astype(np.float64)
-    peak, distance = peak_range(magnitude, d)
+    peak, distance = peak_range(np.abs(volume).astype(np.float64), d)
     top = peak.max()
     if top > 0:
         decibels = 20 * np.log10(np.maximum(peak / top, 1e-300))
@@ -181,3 +189,9 @@ def view_images(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.
     depth = np.where(intensity >= DEPTH_INTENSITY_FLOOR, (z0_mm - distance) / (images.fov_mm / 2), 0.0)
     channels = {"intensity": intensity, "depth": depth}
     return np.stack([channels[name] for name in images.channels]).astype(np.float32)
+
+
+def view_images(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, z0_mm: float,
+                images: ImageParams) -> np.ndarray:
+    """The view's channels (C, H, W) float32 of an echo (Nx, Ny, Nf): volume_images of view_volume."""
+    return volume_images(view_volume(echo, freqs, x_mm, y_mm, z0_mm, images), freqs, z0_mm, images)

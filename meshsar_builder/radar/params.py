@@ -31,6 +31,10 @@ FACET_MODELS = ("po", "centroid", "random")
 # factor k_n / 2 pi, the textbook monostatic PO model (plate sigma = 4 pi A^2 / lambda^2).
 REFLECTIVITIES = ("lobe", "po")
 PROBES = ("corners", "centre")
+# Noise: the image-domain noise floor's RMS this many dB below the noise-free image's peak,
+# unless the recipe sets snr_db (per raw sample). 25 dB puts the noise floor inside the
+# 40 dB display: a raw SNR of 30 dB left it ~62 dB down, invisible.
+DEFAULT_IMAGE_SNR_DB = 25.0
 ECHO_METHODS = ("chebyshev", "direct")
 
 # Offset of a visibility ray's origin along the facet normal: ~100 float32 ulps at
@@ -72,7 +76,8 @@ class RadarParams:
     step_mm: float = 2.0
     z0_mm: float = 300.0
     views: tuple[str, ...] = ("anterior", "left", "superior")
-    snr_db: float = 30.0
+    snr_db: float | None = None
+    image_snr_db: float | None = None
     rvp: bool = True
     p: float = 4.0
     kappa: float = 0.3
@@ -83,15 +88,23 @@ class RadarParams:
     echo_method: str = "chebyshev"
 
     def __post_init__(self):
-        for name in ("f0_hz", "slope_hz_per_s", "fs_hz", "t0_s", "step_mm", "z0_mm", "snr_db", "p", "kappa"):
+        for name in ("f0_hz", "slope_hz_per_s", "fs_hz", "t0_s", "step_mm", "z0_mm", "p", "kappa"):
             _as_float(self, name)
+        if self.snr_db is not None and self.image_snr_db is not None:
+            raise invalid("snr_db", "set one of snr_db (per raw sample) and image_snr_db (image noise floor), not both",
+                          self.snr_db)
+        if self.snr_db is None and self.image_snr_db is None:
+            object.__setattr__(self, "image_snr_db", DEFAULT_IMAGE_SNR_DB)
+        for name in ("snr_db", "image_snr_db"):
+            if getattr(self, name) is not None:
+                _as_float(self, name)
+                if math.isnan(getattr(self, name)) or getattr(self, name) == -math.inf:
+                    raise invalid(name, "must be a number or inf (no noise)", getattr(self, name))
         for name in ("f0_hz", "slope_hz_per_s", "fs_hz", "step_mm", "z0_mm", "p"):
             if not (0 < getattr(self, name) < math.inf):
                 raise invalid(name, "must be positive and finite", getattr(self, name))
         if not (0 <= self.t0_s < math.inf):
             raise invalid("t0_s", "must be >= 0 and finite", self.t0_s)
-        if math.isnan(self.snr_db) or self.snr_db == -math.inf:
-            raise invalid("snr_db", "must be a number or inf (no noise)", self.snr_db)
         if not 0 <= self.kappa <= 1:
             raise invalid("kappa", "must lie in [0, 1]", self.kappa)
         if isinstance(self.n_samples, bool) or not isinstance(self.n_samples, int) or self.n_samples < 2:
@@ -188,15 +201,16 @@ def echo_grid(radar: RadarParams) -> dict:
 def index_metadata(radar: RadarParams, images: ImageParams) -> dict:
     """The index.json keys this module owns (DESIGN section 7), as plain JSON values.
 
-    `views`, `fov_mm`, `image_size`, `channels`, `radar`, `echo_grid`. An infinite
-    snr_db (no noise) is written as null, since JSON has no infinity.
+    `views`, `fov_mm`, `image_size`, `channels`, `radar`, `echo_grid`. The noise key not
+    in use, or an infinite one (no noise), is written as null, since JSON has no infinity.
     """
     grid = echo_grid(radar)
     radar_keys = ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
-                  "z0_mm", "snr_db", "rvp", "p", "kappa", "facet", "reflectivity", "probes")
+                  "z0_mm", "snr_db", "image_snr_db", "rvp", "p", "kappa", "facet", "reflectivity", "probes")
     radar_dict = {key: getattr(radar, key) for key in radar_keys}
     radar_dict["aperture"] = list(radar.aperture)
-    radar_dict["snr_db"] = radar.snr_db if math.isfinite(radar.snr_db) else None
+    for key in ("snr_db", "image_snr_db"):
+        radar_dict[key] = radar_dict[key] if radar_dict[key] is not None and math.isfinite(radar_dict[key]) else None
     return {
         "views": [
             {"name": view, **{axis: row.tolist() for axis, row in zip("uvw", view_frame(view))}}

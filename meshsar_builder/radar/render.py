@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
 
-from meshsar_builder.radar.echo import add_noise, echo
-from meshsar_builder.radar.imaging import ImageParams, view_images
+from meshsar_builder.radar.echo import echo
+from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images
 from meshsar_builder.radar.params import (
     RadarParams,
     aperture_axes,
@@ -19,6 +20,25 @@ from meshsar_builder.radar.params import (
 from meshsar_builder.radar.visibility import embree_intersector, facet_geometry, scatterer_points, visibility
 
 
+def unit_noise(shape: tuple, rng: np.random.Generator) -> np.ndarray:
+    """Complex white Gaussian noise of mean power 1, complex128 of `shape`."""
+    return rng.standard_normal((*shape, 2)) @ np.array([1.0, 1.0j]) / math.sqrt(2)
+
+
+def noise_scale(signal_power: float, signal_peak: float, noise_rms: float, radar: RadarParams) -> float:
+    """The noise amplitude sigma (echo units) that radar's snr_db or image_snr_db asks for; 0 for no noise.
+
+    snr_db: sigma^2 = mean |s|^2 / 10^(snr/10), per raw sample. image_snr_db: the RMS of
+    the unit noise's image (noise_rms) times sigma lies that many dB below the noise-free
+    image's peak (signal_peak).
+    """
+    if radar.snr_db is not None:
+        return 0.0 if math.isinf(radar.snr_db) else math.sqrt(signal_power / 10 ** (radar.snr_db / 10))
+    if math.isinf(radar.image_snr_db) or noise_rms == 0:
+        return 0.0
+    return signal_peak / noise_rms / 10 ** (radar.image_snr_db / 20)
+
+
 def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, images: ImageParams,
                   rng: np.random.Generator) -> dict:
     """SAR images and decimated echo of one mesh for every view of `radar`.
@@ -28,37 +48,58 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     drawn from rng first, then view i's noise comes from the i-th of
     rng.spawn(len(views)), so each (sample, view) has its own noise stream.
 
-    Returns `sar` (V, C, H, W) float16, `echo` (V, Ex, Ey, Ef) complex64 on the grid
-    of echo_grid(radar), and `views`: per view a dict of `name`, `visible_facets`
-    (V_k > 0), `visible_area_mm2` (sum of V_k area_k), `signal_power`,
-    `noise_power`, `rays`, and `seconds` for visibility, echo and imaging.
+    The noise is drawn with unit power and imaged on its own (imaging is linear), so
+    each view knows its image-domain noise floor and can scale the noise to
+    radar.image_snr_db. Returns `sar` (V, C, H, W) float16, `echo` (V, Ex, Ey, Ef)
+    complex64 on the grid of echo_grid(radar), and `views`: per view a dict of `name`,
+    `visible_facets` (V_k > 0), `visible_area_mm2` (sum of V_k area_k), `signal_power`
+    and `noise_power` (mean per raw sample), `raw_snr_db`, `noise_floor_db` (the image
+    noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
+    and `seconds` for visibility, echo and imaging.
     """
     verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces)
-    _, normals, areas = facet_geometry(verts, faces)
-    points = scatterer_points(verts, faces, radar.scatterer, rng)
+    tri = verts[faces]
+    areas = facet_geometry(verts, faces)[2]
+    points = scatterer_points(verts, faces, radar.facet, rng)
     noise_rngs = rng.spawn(len(radar.views))
     intersector = embree_intersector(verts, faces)
     freqs = frequencies(radar)
     x_mm, y_mm = aperture_axes(radar)
     keep_x, keep_y, keep_f = (decimation_indices(size, factor) for size, factor
                               in zip((*radar.aperture, radar.n_samples), radar.echo_decimation))
+    shape = (*radar.aperture, radar.n_samples)
+    noisy = radar.snr_db != math.inf and radar.image_snr_db != math.inf
     sar, decimated, stats = [], [], []
     for view, noise_rng in zip(radar.views, noise_rngs):
         t0 = time.perf_counter()
         vis, rays = visibility(verts, faces, probe_points(radar, view), intersector)
         t1 = time.perf_counter()
         seen = vis > 0
-        signal = echo(points[seen], normals[seen], (vis * areas)[seen], aperture_positions(radar, view), freqs, radar)
+        signal = echo(tri[seen], vis[seen], aperture_positions(radar, view), freqs, radar, points=points[seen])
+        signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
-        signal, noise_power = add_noise(signal, radar.snr_db, noise_rng)
-        signal = signal.reshape(*radar.aperture, radar.n_samples)
+        noise = unit_noise(shape, noise_rng) if noisy else None
         t2 = time.perf_counter()
-        sar.append(view_images(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
+        volume = view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images)
+        peak = float(np.abs(volume).max())
+        sigma, floor_db = 0.0, None
+        if noisy:
+            noise_volume = view_volume(noise, freqs, x_mm, y_mm, radar.z0_mm, images)
+            noise_rms = float(np.sqrt(np.mean(np.abs(noise_volume) ** 2)))
+            sigma = noise_scale(signal_power, peak, noise_rms, radar)
+            if sigma > 0:
+                volume = volume + np.complex64(sigma) * noise_volume
+                signal = signal + sigma * noise
+                floor_db = 20 * math.log10(peak / (sigma * noise_rms)) if peak > 0 else None
+        sar.append(volume_images(volume, freqs, radar.z0_mm, images))
         t3 = time.perf_counter()
         decimated.append(signal[np.ix_(keep_x, keep_y, keep_f)])
+        noise_power = sigma**2
         stats.append({
             "name": view, "visible_facets": int(seen.sum()), "visible_area_mm2": float(vis @ areas),
-            "signal_power": signal_power, "noise_power": noise_power, "rays": rays,
+            "signal_power": signal_power, "noise_power": noise_power,
+            "raw_snr_db": 10 * math.log10(signal_power / noise_power) if noise_power > 0 and signal_power > 0 else None,
+            "noise_floor_db": floor_db, "rays": rays,
             "seconds": {"visibility": t1 - t0, "echo": t2 - t1, "imaging": t3 - t2},
         })
     return {

@@ -7,7 +7,7 @@ import trimesh
 
 from meshsar_builder.pipeline.errors import MeshsarError
 from meshsar_builder.radar.imaging import invalid
-from meshsar_builder.radar.params import RAY_OFFSET_MM, SCATTERERS
+from meshsar_builder.radar.params import FACET_MODELS, RAY_OFFSET_MM
 
 # ---------------------------------------------------------------- facets and visibility
 
@@ -18,7 +18,12 @@ def facet_geometry(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np
     verts : (n, 3) float mm; faces : (F, 3) int, counter-clockwise seen from outside.
     Degenerate facets get a zero normal and area, so they never contribute.
     """
-    tri = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
+    return triangle_geometry(np.asarray(verts, dtype=np.float64)[np.asarray(faces)])
+
+
+def triangle_geometry(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centroids (F, 3), unit normals (F, 3) and areas (F,) of triangles tri (F, 3, 3), corners counter-clockwise."""
+    tri = np.asarray(tri, dtype=np.float64)
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     double_area = np.linalg.norm(cross, axis=1)
     normals = np.divide(cross, double_area[:, None], out=np.zeros_like(cross), where=double_area[:, None] > 0)
@@ -26,12 +31,12 @@ def facet_geometry(verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np
 
 
 def scatterer_points(verts: np.ndarray, faces: np.ndarray, mode: str, rng: np.random.Generator | None) -> np.ndarray:
-    """(F, 3) float: each facet's scatterer, its centroid or ("random") a seeded uniform point in it."""
+    """(F, 3) float: each facet's point scatterer, a seeded uniform point in it for mode "random", else its centroid."""
     tri = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
-    if mode == "centroid":
-        return tri.mean(axis=1)
+    if mode not in FACET_MODELS:
+        raise invalid("facet", f"must be one of {', '.join(FACET_MODELS)}", mode)
     if mode != "random":
-        raise invalid("scatterer", f"must be one of {', '.join(SCATTERERS)}", mode)
+        return tri.mean(axis=1)
     r = rng.random((len(tri), 2))
     # Folding the unit square's upper triangle onto the lower keeps the density uniform.
     outside = r.sum(axis=1) > 1
