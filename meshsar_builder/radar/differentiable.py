@@ -53,8 +53,8 @@ def facet_phasor(phase: torch.Tensor, beta: torch.Tensor, wavenumber: torch.Tens
     beta_i = 2 (c - a).(p_i - c) / R (corners p_i, centroid c, antenna a); wavenumber (Ef,) k rad/mm.
     F / area = 2 DD[exp](j alpha_0, j alpha_1, j alpha_2) (Hermite-Genocchi: the integral of
     exp(j q.(x - c)) over the triangle is 2 area times the second divided difference of exp),
-    exactly 1 at normal incidence (all alpha 0). Two evaluations, joined by a "double where"
-    so that the branch not taken sees safe inputs and gives no NaN gradient:
+    exactly 1 at normal incidence (all alpha 0). Two evaluations; the closed form gets a safe
+    gap where the series is taken ("double where"), so that it gives no NaN gradient:
     - corner spread k_min (hi - lo) > SERIES_GAP, lo <= mid <= hi the sorted beta (the order
       is the same for every k > 0): with phi1(jx) = (e^{jx} - 1) / (jx) = e^{jx/2} sinc(x/2),
       DD = e^{j k mid} (phi1(j k (hi - mid)) - phi1(j k (lo - mid))) / (j k (hi - lo)); dividing
@@ -77,25 +77,25 @@ def facet_phasor(phase: torch.Tensor, beta: torch.Tensor, wavenumber: torch.Tens
     direct_re = 2 * (upper * torch.sin(up_angle) - lower * torch.sin(low_angle)) / safe_gap
     direct_im = -2 * (upper * torch.cos(up_angle) - lower * torch.cos(low_angle)) / safe_gap
 
-    mean = beta.mean(-1)
-    w = torch.where(far[..., None], torch.zeros_like(beta), beta - mean[..., None])  # (..., M, F, 3)
-    e2 = w[..., 0] * w[..., 1] + w[..., 0] * w[..., 2] + w[..., 1] * w[..., 2]
-    e3 = w[..., 0] * w[..., 1] * w[..., 2]
+    # The series only where it is used (few pairs: facets seen near normal incidence);
+    # index_put routes no gradient to the direct values it replaces.
+    near = (~far).nonzero(as_tuple=True)
+    w = beta[near] - beta[near].mean(-1, keepdim=True)  # (P, 3)
+    e2 = w[:, 0] * w[:, 1] + w[:, 0] * w[:, 2] + w[:, 1] * w[:, 2]
+    e3 = w[:, 0] * w[:, 1] * w[:, 2]
     h = [torch.ones_like(e2), torch.zeros_like(e2), -e2]
     for p in range(3, SERIES_TERMS):
         h.append(-e2 * h[p - 2] + e3 * h[p - 3])
-    # Horner in k^2 (a small matrix product here goes through BLAS, far slower at these shapes)
-    k2 = wavenumber * wavenumber
+    k2 = wavenumber * wavenumber  # Horner in k^2
     series_re, series_im = 0, 0
     for p in range(SERIES_TERMS - 2, -1, -2):
-        series_re = series_re * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 2)) * h[p][..., None]
-        series_im = series_im * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 3)) * h[p + 1][..., None]
-    series_im = series_im * wavenumber  # (..., M, F, Ef)
-    angle = phase + mean[..., None] * wavenumber
+        series_re = series_re * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 2)) * h[p][:, None]
+        series_im = series_im * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 3)) * h[p + 1][:, None]
+    series_im = series_im * wavenumber  # (P, Ef)
+    angle = phase[near] + beta[near].mean(-1, keepdim=True) * wavenumber
     c, s = torch.cos(angle), torch.sin(angle)
     near_re, near_im = c * series_re - s * series_im, s * series_re + c * series_im
-    far = far[..., None]
-    return torch.where(far, direct_re, near_re), torch.where(far, direct_im, near_im)
+    return direct_re.index_put(near, near_re), direct_im.index_put(near, near_im)
 
 
 def _echo_chunk(centroids, normals, weights, edges, positions, freqs, radar: RadarParams):
@@ -170,11 +170,15 @@ def echo_torch(verts: torch.Tensor, faces: torch.Tensor, positions, freqs, radar
     centre = positions.mean(0) if centre is None else torch.as_tensor(np.asarray(centre), dtype=dtype, device=device)
     probes = centre.detach().cpu().numpy()[None] if probes is None else probes
     faces = torch.as_tensor(faces, dtype=torch.long, device=device)
+    mask = occlusion_mask(verts, faces, probes)  # (..., F)
+    # Facets hidden in every mesh of the batch have weight 0 and no gradient: skip them (about half).
+    seen = (mask > 0).reshape(-1, len(faces)).any(0)  # (F,)
+    faces, mask = faces[seen], mask[..., seen]
     centroids, normals, areas = facet_geometry_torch(verts, faces)
-    weights = areas * occlusion_mask(verts, faces, probes) * soft_visibility(centroids, normals, centre, beta)
+    weights = areas * mask * soft_visibility(centroids, normals, centre, beta)
     edges = verts[..., faces, :] - centroids[..., None, :] if radar.facet == "po" else None
     batch = int(np.prod(verts.shape[:-2], dtype=np.int64))
-    chunk = max(1, TERMS_PER_CHUNK // (batch * len(faces) * len(freqs)))
+    chunk = max(1, TERMS_PER_CHUNK // max(1, batch * len(faces) * len(freqs)))
     parts = []
     for start in range(0, len(positions), chunk):
         args = (centroids, normals, weights, edges, positions[start : start + chunk], freqs, radar)

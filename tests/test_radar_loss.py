@@ -1,0 +1,76 @@
+"""The radar loss points at the truth: a trainer-resolution mesh on the true surface, against the echo of a fine mesh.
+
+The stored echo is simulated from the fine mesh with the production echo (facet
+"centroid" on edges <= 0.7 mm, where it equals the facet integral); the
+prediction is the trainer's 2,562-vertex icosphere with its vertices on the same
+ellipsoid. Scaling and shifting the prediction along each view axis must raise
+every loss mode, and the profile loss must fall monotonically toward the truth.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import trimesh
+
+import meshsar_builder.radar.params as RP
+
+torch = pytest.importorskip("torch")
+from meshsar_builder.trainer.losses import RADAR_MODES, radar_loss  # noqa: E402
+
+AXES_MM = np.array([50.0, 40.0, 60.0])  # ellipsoid semi-axes, a heart-sized body
+SCALES = (0.9, 0.95, 0.98, 0.99, 1.0, 1.01, 1.02, 1.05, 1.1)
+SHIFTS_MM = (-5.0, -3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 3.0, 5.0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Stored echo (1, V, M, Ef) of the fine ellipsoid on 4 x 4 antennas per view, and the loss's other inputs."""
+    import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.visibility as RV
+
+    torch.set_num_threads(1)
+    radar = RP.RadarParams()
+    grid = RP.echo_grid(radar)
+    antennas = np.arange(256).reshape(16, 16)[::5, ::5].ravel()  # 4 x 4 spread over the decimated aperture
+    positions = np.stack([grid["positions_mm"][v][antennas] for v in radar.views])  # (V, 16, 3)
+    centres = np.stack([radar.z0_mm * RP.view_frame(v)[2] for v in radar.views])  # (V, 3)
+    freqs = grid["frequencies_hz"]
+    fine = trimesh.creation.icosphere(7)  # edges <= 0.6 mm on the ellipsoid
+    verts, faces = fine.vertices * AXES_MM, fine.faces
+    points, normals, areas = RV.facet_geometry(verts, faces)
+    stored = []
+    for view, pos in zip(radar.views, positions):
+        vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
+        seen = vis > 0
+        stored.append(RE.echo(points[seen], normals[seen], (vis * areas)[seen], pos, freqs,
+                              dataclasses.replace(radar, facet="centroid")))
+    coarse = trimesh.creation.icosphere(4)  # the trainer's template level: 2,562 vertices, on the surface
+    assert len(coarse.vertices) == 2562
+    return dict(radar=radar, positions=positions, centres=centres, freqs=freqs,
+                echo=torch.tensor(np.stack(stored)[None], dtype=torch.complex64),
+                verts=coarse.vertices * AXES_MM, faces=torch.tensor(coarse.faces))
+
+
+def losses(scene, verts):
+    """{mode: loss} of one predicted mesh (n, 3) mm."""
+    with torch.no_grad():
+        batch = torch.tensor(verts, dtype=torch.float32)[None]
+        return {mode: radar_loss(batch, scene["faces"], scene["echo"], scene["positions"], scene["centres"],
+                                 scene["freqs"], scene["radar"], mode).item() for mode in RADAR_MODES}
+
+
+@pytest.mark.slow
+def test_every_mode_is_lowest_at_the_true_scale_and_position(scene):
+    truth = losses(scene, scene["verts"])
+    by_scale = {s: losses(scene, s * scene["verts"]) for s in SCALES if s != 1.0}
+    for mode in RADAR_MODES:
+        assert truth[mode] < min(value[mode] for value in by_scale.values()), (mode, truth, by_scale)
+    for axis in range(3):  # x, y, z: the axes of the left, anterior and superior views
+        curve = {d: truth if d == 0 else losses(scene, scene["verts"] + np.eye(3)[axis] * d) for d in SHIFTS_MM}
+        for mode in RADAR_MODES:
+            values = np.array([curve[d][mode] for d in SHIFTS_MM])
+            assert SHIFTS_MM[int(np.argmin(values))] == 0.0, (mode, axis, values)
+        profile = np.array([curve[d]["profile"] for d in SHIFTS_MM if abs(d) <= 3])  # -3 ... 3 mm
+        centre = len(profile) // 2
+        assert (np.diff(profile[: centre + 1]) < 0).all() and (np.diff(profile[centre:]) > 0).all(), (axis, profile)
