@@ -23,32 +23,37 @@ SCALES = (0.9, 0.95, 0.98, 0.99, 1.0, 1.01, 1.02, 1.05, 1.1)
 SHIFTS_MM = (-5.0, -3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 3.0, 5.0)
 
 
-@pytest.fixture(scope="module")
-def scene():
-    """Stored echo (1, V, M, Ef) of the fine ellipsoid on 4 x 4 antennas per view, and the loss's other inputs."""
+def production_echo(verts, faces, radar, positions):
+    """(V, M, Ef) production echo (Embree visibility, facet "centroid") of a mesh at positions (V, M, 3)."""
     import meshsar_builder.radar.echo as RE
     import meshsar_builder.radar.visibility as RV
 
+    points, normals, areas = RV.facet_geometry(verts, faces)
+    centroid = dataclasses.replace(radar, facet="centroid")
+    stored = []
+    for view, pos in zip(radar.views, positions):
+        vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
+        seen = vis > 0
+        stored.append(RE.echo(points[seen], normals[seen], (vis * areas)[seen], pos, RP.echo_grid(radar)[
+            "frequencies_hz"], centroid))
+    return np.stack(stored)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Stored echo (1, V, M, Ef) of the fine ellipsoid on 4 x 4 antennas per view, and the loss's other inputs."""
     torch.set_num_threads(1)
     radar = RP.RadarParams()
     grid = RP.echo_grid(radar)
     antennas = np.arange(256).reshape(16, 16)[::5, ::5].ravel()  # 4 x 4 spread over the decimated aperture
     positions = np.stack([grid["positions_mm"][v][antennas] for v in radar.views])  # (V, 16, 3)
     centres = np.stack([radar.z0_mm * RP.view_frame(v)[2] for v in radar.views])  # (V, 3)
-    freqs = grid["frequencies_hz"]
     fine = trimesh.creation.icosphere(7)  # edges <= 0.6 mm on the ellipsoid
-    verts, faces = fine.vertices * AXES_MM, fine.faces
-    points, normals, areas = RV.facet_geometry(verts, faces)
-    stored = []
-    for view, pos in zip(radar.views, positions):
-        vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
-        seen = vis > 0
-        stored.append(RE.echo(points[seen], normals[seen], (vis * areas)[seen], pos, freqs,
-                              dataclasses.replace(radar, facet="centroid")))
+    stored = production_echo(fine.vertices * AXES_MM, fine.faces, radar, positions)
     coarse = trimesh.creation.icosphere(4)  # the trainer's template level: 2,562 vertices, on the surface
     assert len(coarse.vertices) == 2562
-    return dict(radar=radar, positions=positions, centres=centres, freqs=freqs,
-                echo=torch.tensor(np.stack(stored)[None], dtype=torch.complex64),
+    return dict(radar=radar, positions=positions, centres=centres, freqs=grid["frequencies_hz"],
+                echo=torch.tensor(stored[None], dtype=torch.complex64),
                 verts=coarse.vertices * AXES_MM, faces=torch.tensor(coarse.faces))
 
 
@@ -74,3 +79,22 @@ def test_every_mode_is_lowest_at_the_true_scale_and_position(scene):
         profile = np.array([curve[d]["profile"] for d in SHIFTS_MM if abs(d) <= 3])  # -3 ... 3 mm
         centre = len(profile) // 2
         assert (np.diff(profile[: centre + 1]) < 0).all() and (np.diff(profile[centre:]) > 0).all(), (axis, profile)
+
+
+def test_prediction_reproduces_the_production_echo_of_the_same_surface(scene):
+    """DESIGN section 4: within 0.03 relative L2 of the production echo of the mesh's own surface.
+
+    The production side takes the mesh cut 3 times by midpoint subdivision (the same flat
+    facets, edges <= 0.6 mm), where its centroid model equals the facet integral.
+    """
+    from meshsar_builder.radar.differentiable import aperture_probes, echo_torch
+
+    verts, faces = scene["verts"], scene["faces"].numpy()
+    fine_verts, fine_faces = verts, faces
+    for _ in range(3):
+        fine_verts, fine_faces = trimesh.remesh.subdivide(fine_verts, fine_faces)
+    stored = production_echo(fine_verts, fine_faces, scene["radar"], scene["positions"])
+    for v, (positions, centre) in enumerate(zip(scene["positions"], scene["centres"])):
+        got = echo_torch(torch.tensor(verts), scene["faces"], positions, scene["freqs"], scene["radar"], centre=centre,
+                         probes=aperture_probes(centre, scene["radar"])).numpy()
+        assert np.linalg.norm(got - stored[v]) / np.linalg.norm(stored[v]) <= 0.03, scene["radar"].views[v]
