@@ -11,7 +11,7 @@ import trimesh
 torch = pytest.importorskip("torch")
 
 import meshsar_builder.radar.params as RP  # noqa: E402
-from meshsar_builder.radar.differentiable import echo_torch  # noqa: E402
+from meshsar_builder.radar.differentiable import aperture_probes, echo_torch  # noqa: E402
 from meshsar_builder.trainer import losses as L  # noqa: E402
 
 
@@ -128,7 +128,8 @@ def test_radar_loss_gradcheck(mode):
 @pytest.mark.parametrize("mode", L.RADAR_MODES)
 def test_radar_loss_vanishes_on_its_own_echo(mode):
     verts, faces, _, positions, centres, freqs = tiny_radar_setup(torch.float64)
-    own = torch.stack([echo_torch(verts, faces, positions[k], freqs, TINY, centre=centres[k]) for k in range(2)])[None]
+    own = torch.stack([echo_torch(verts, faces, positions[k], freqs, TINY, centre=centres[k],
+                                  probes=aperture_probes(centres[k], TINY)) for k in range(2)])[None]
     assert L.radar_loss(verts[None], faces, own, positions, centres, freqs, TINY, mode).item() == pytest.approx(0, abs=1e-12)
     with pytest.raises(ValueError, match="mode"):
         L.radar_loss(verts[None], faces, own, positions, centres, freqs, TINY, "phase")
@@ -143,7 +144,8 @@ def test_radar_loss_matches_a_loop_over_samples_and_views(mode):
     ratios = []
     for b in range(2):
         for v in range(len(positions)):
-            p = echo_torch(batch[b], faces, positions[v], freqs, TINY, centre=centres[v]).numpy()  # (M, Ef)
+            p = echo_torch(batch[b], faces, positions[v], freqs, TINY, centre=centres[v],
+                           probes=aperture_probes(centres[v], TINY)).numpy()  # (M, Ef)
             t = stored[b, v].numpy()
             if mode == "profile":
                 p, t = np.abs(np.fft.ifft(p, axis=-1)), np.abs(np.fft.ifft(t, axis=-1))

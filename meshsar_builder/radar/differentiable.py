@@ -1,10 +1,14 @@
 """Differentiable radar echo in PyTorch, for the trainer's radar loss (DESIGN section 4).
 
-The same amplitude and phase as radar.echo, with the Embree visibility V_k
-replaced by the soft visibility sigmoid(beta cos theta_k), cos theta_k the
-cosine between the facet normal and the direction to the aperture centre (no
-occlusion). Normals, areas and centroids are computed from the vertices inside
-the graph, so gradients reach vertex positions. Runs on the device of `verts`.
+The production model: per visible facet, its physical-optics integral F_k(q) (facet
+"po") or its area (facet "centroid"), the reflectivity pattern g and 1/R^2 at the
+centroid, the round-trip phase [with rvp]. The visibility V_k is the Embree
+visibility of the facet on the current mesh (radar.visibility, a mask without
+gradient, cast on the detached vertices) times the soft facing sigmoid(beta cos
+theta_k), theta_k between the facet normal and the direction to the aperture
+centre, which carries the gradient. Normals, areas, centroids and corners come
+from the vertices inside the graph, so gradients reach vertex positions. Runs on
+the device of `verts`.
 """
 
 from __future__ import annotations
@@ -15,10 +19,16 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, RadarParams
+from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, VIEW_FRAMES, RadarParams, probe_points
 
-# Antenna x facet x frequency terms held at once (complex): ~64 MB in complex64.
-TERMS_PER_CHUNK = 1 << 23
+# Antenna x facet x frequency terms per chunk: the facet integral holds ~40 real arrays
+# of this size for the backward pass, ~170 MB in float32.
+TERMS_PER_CHUNK = 1 << 20
+# Corner phase spread (rad) below which the facet integral uses its series: there the
+# series' terms fall below 1e-16 by SERIES_TERMS, and above it the closed form loses at
+# most a factor 1 / SERIES_GAP of precision to cancellation.
+SERIES_GAP = 1.0
+SERIES_TERMS = 16
 
 
 def facet_geometry_torch(verts: torch.Tensor, faces: torch.Tensor):
@@ -36,46 +46,142 @@ def soft_visibility(centroids: torch.Tensor, normals: torch.Tensor, centre: torc
     return torch.sigmoid(beta * cos)
 
 
-def _echo_chunk(centroids, normals, weights, positions, freqs, p, kappa, slope_hz_per_s):
-    """sum_k w_k g(cos theta_km) / R^2 exp(j 2 pi (f_n tau - S tau^2 / 2)): (..., M, Ef)."""
-    diff = positions[:, None, :] - centroids[..., None, :, :]  # (..., M, F, 3)
+def facet_phasor(phase: torch.Tensor, beta: torch.Tensor, wavenumber: torch.Tensor):
+    """exp(j phase) F / area of flat facets, real and imaginary parts (..., M, F, Ef).
+
+    phase (..., M, F, Ef) rad; beta (..., M, F, 3) mm: the corner phases are alpha_i = k beta_i,
+    beta_i = 2 (c - a).(p_i - c) / R (corners p_i, centroid c, antenna a); wavenumber (Ef,) k rad/mm.
+    F / area = 2 DD[exp](j alpha_0, j alpha_1, j alpha_2) (Hermite-Genocchi: the integral of
+    exp(j q.(x - c)) over the triangle is 2 area times the second divided difference of exp),
+    exactly 1 at normal incidence (all alpha 0). Two evaluations; the closed form gets a safe
+    gap where the series is taken ("double where"), so that it gives no NaN gradient:
+    - corner spread k_min (hi - lo) > SERIES_GAP, lo <= mid <= hi the sorted beta (the order
+      is the same for every k > 0): with phi1(jx) = (e^{jx} - 1) / (jx) = e^{jx/2} sinc(x/2),
+      DD = e^{j k mid} (phi1(j k (hi - mid)) - phi1(j k (lo - mid))) / (j k (hi - lo)); dividing
+      by the largest gap keeps it well conditioned when two corners coincide.
+    - else the series about the mean m: DD = e^{j k m} sum_p (j k)^p h_p(w) / (p + 2)!,
+      w = beta - m, h_p the complete homogeneous symmetric polynomials, h_p = -e2 h_{p-2} +
+      e3 h_{p-3} (e1 = sum w = 0); the powers of k by Horner's rule.
+    """
+    lo, hi = beta.amin(-1), beta.amax(-1)  # (..., M, F)
+    mid = beta.sum(-1) - lo - hi
+    gap = hi - lo
+    far = gap * wavenumber.min() > SERIES_GAP
+    safe_gap = torch.where(far, gap, torch.ones_like(gap))[..., None] * wavenumber  # (..., M, F, Ef)
+    k = wavenumber / 2
+    upper = torch.sinc((hi - mid)[..., None] * (k / math.pi))
+    lower = torch.sinc((lo - mid)[..., None] * (k / math.pi))
+    up_angle = phase + (mid + hi)[..., None] * k
+    low_angle = phase + (mid + lo)[..., None] * k
+    # 2 (e^{ja} U - e^{jb} L) / (j k gap) = 2 (U sin a - L sin b - j (U cos a - L cos b)) / (k gap)
+    direct_re = 2 * (upper * torch.sin(up_angle) - lower * torch.sin(low_angle)) / safe_gap
+    direct_im = -2 * (upper * torch.cos(up_angle) - lower * torch.cos(low_angle)) / safe_gap
+
+    # The series only where it is used (few pairs: facets seen near normal incidence);
+    # index_put routes no gradient to the direct values it replaces.
+    near = (~far).nonzero(as_tuple=True)
+    w = beta[near] - beta[near].mean(-1, keepdim=True)  # (P, 3)
+    e2 = w[:, 0] * w[:, 1] + w[:, 0] * w[:, 2] + w[:, 1] * w[:, 2]
+    e3 = w[:, 0] * w[:, 1] * w[:, 2]
+    h = [torch.ones_like(e2), torch.zeros_like(e2), -e2]
+    for p in range(3, SERIES_TERMS):
+        h.append(-e2 * h[p - 2] + e3 * h[p - 3])
+    k2 = wavenumber * wavenumber  # Horner in k^2
+    series_re, series_im = 0, 0
+    for p in range(SERIES_TERMS - 2, -1, -2):
+        series_re = series_re * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 2)) * h[p][:, None]
+        series_im = series_im * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 3)) * h[p + 1][:, None]
+    series_im = series_im * wavenumber  # (P, Ef)
+    angle = phase[near] + beta[near].mean(-1, keepdim=True) * wavenumber
+    c, s = torch.cos(angle), torch.sin(angle)
+    near_re, near_im = c * series_re - s * series_im, s * series_re + c * series_im
+    return direct_re.index_put(near, near_re), direct_im.index_put(near, near_im)
+
+
+def _echo_chunk(centroids, normals, weights, edges, positions, freqs, radar: RadarParams):
+    """sum_k w_k g(cos theta_km) / R^2 exp(j 2 pi (f_n tau - S tau^2 / 2)) F_k / A_k: (..., M, Ef).
+
+    edges (..., F, 3, 3): corners minus centroid, or None for the centroid model (F_k = A_k).
+    """
+    diff = positions[:, None, :] - centroids[..., None, :, :]  # (..., M, F, 3) a_m - c_k
     r2 = (diff * diff).sum(-1)
     r = torch.sqrt(r2)
     cos = ((diff * normals[..., None, :, :]).sum(-1) / r).clamp_min(0)
-    amplitude = weights[..., None, :] * ((1 - kappa) * cos**p + kappa * cos) / r2
+    lobe = cos if radar.reflectivity == "po" else (1 - radar.kappa) * cos**radar.p + radar.kappa * cos
+    amplitude = weights[..., None, :] * lobe / r2  # (..., M, F)
     tau = r * (2e-3 / SPEED_OF_LIGHT_M_PER_S)
-    cycles = tau[..., None] * freqs
-    if slope_hz_per_s:
-        cycles = cycles - (0.5 * slope_hz_per_s) * (tau * tau)[..., None]
-    terms = torch.polar(amplitude[..., None].expand_as(cycles), (2 * math.pi) * cycles)
-    return terms.sum(-2)
+    cycles = tau[..., None] * freqs  # (..., M, F, Ef)
+    if radar.rvp:
+        cycles = cycles - (0.5 * radar.slope_hz_per_s) * (tau * tau)[..., None]
+    phase = (2 * math.pi) * cycles
+    wavenumber = freqs * (2e-3 * math.pi / SPEED_OF_LIGHT_M_PER_S)  # (Ef,) rad/mm
+    if edges is None:
+        re, im = torch.cos(phase), torch.sin(phase)
+    else:
+        beta = -2 * (diff[..., None, :] * edges[..., None, :, :, :]).sum(-1) / r[..., None]  # (..., M, F, 3)
+        re, im = facet_phasor(phase, beta, wavenumber)
+    out = torch.complex((amplitude[..., None] * re).sum(-2), (amplitude[..., None] * im).sum(-2))  # (..., M, Ef)
+    # the physical-optics factor k / 2 pi
+    return out * (wavenumber / (2 * math.pi)) if radar.reflectivity == "po" else out
+
+
+def aperture_probes(centre, radar: RadarParams) -> np.ndarray:
+    """(P, 3) production visibility probes (radar.probes) of the preset view whose aperture centre is `centre` (3,) mm."""
+    centre = np.asarray(centre, dtype=np.float64)
+    for view, frame in VIEW_FRAMES.items():
+        if np.allclose(radar.z0_mm * np.asarray(frame[2], dtype=np.float64), centre, atol=1e-6 * radar.z0_mm):
+            return probe_points(radar, view)
+    raise ValueError(f"centre: {centre.tolist()} is no preset view's aperture centre at z0_mm = {radar.z0_mm}")
+
+
+def occlusion_mask(verts: torch.Tensor, faces: torch.Tensor, probes) -> torch.Tensor:
+    """Embree visibility (..., F) of each facet from probes (P, 3) mm, on the detached vertices (..., V, 3).
+
+    radar.visibility.visibility per mesh of the batch: the fraction of probes a facet faces
+    and sees unoccluded. No gradient (it is piecewise constant in the vertices).
+    """
+    from meshsar_builder.radar.visibility import visibility  # Embree; only where a mask is asked for
+
+    flat = verts.detach().reshape(-1, *verts.shape[-2:]).to("cpu", torch.float64).numpy()
+    faces_np = faces.cpu().numpy()
+    masks = [visibility(v, faces_np, np.asarray(probes, dtype=np.float64))[0] for v in flat]
+    return torch.as_tensor(np.stack(masks), dtype=verts.dtype, device=verts.device).reshape(*verts.shape[:-2], -1)
 
 
 def echo_torch(verts: torch.Tensor, faces: torch.Tensor, positions, freqs, radar: RadarParams,
-               beta: float = 10.0, centre=None) -> torch.Tensor:
+               beta: float = 10.0, centre=None, probes=None) -> torch.Tensor:
     """Differentiable echo (..., M, Ef), complex of verts' precision.
 
     verts : (V, 3) or (B, V, 3) float tensor, mm, heart frame; faces : (F, 3) long;
     positions : (M, 3) antennas, mm (e.g. echo_grid(radar)["positions_mm"][view]);
-    freqs : (Ef,) Hz; beta : steepness of the soft visibility; centre : (3,) aperture
-    centre, mm (default: the mean of positions, the centre of a centred grid).
-    Facet scatterers are the centroids. Antennas are processed in chunks, each
-    recomputed in the backward pass when gradients are on (checkpointing), so
-    memory stays near TERMS_PER_CHUNK terms whatever M.
+    freqs : (Ef,) Hz; beta : steepness of the soft facing; centre : (3,) aperture
+    centre, mm (default: the mean of positions, the centre of a centred grid);
+    probes : (P, 3) mm, the Embree visibility probes (default: the centre alone; the
+    production echo uses aperture_probes(centre, radar)). radar.facet "po" integrates
+    each facet, "centroid" takes its area; "random" has no differentiable counterpart.
+    Antennas are processed in chunks, each recomputed in the backward pass when
+    gradients are on (checkpointing), so memory stays near TERMS_PER_CHUNK terms.
     """
+    if radar.facet not in ("po", "centroid"):
+        raise ValueError(f"facet: the differentiable echo supports 'po' and 'centroid', got {radar.facet!r}")
     dtype, device = verts.dtype, verts.device
     positions = torch.as_tensor(np.asarray(positions), dtype=dtype, device=device)
     freqs = torch.as_tensor(np.asarray(freqs), dtype=dtype, device=device)
     centre = positions.mean(0) if centre is None else torch.as_tensor(np.asarray(centre), dtype=dtype, device=device)
+    probes = centre.detach().cpu().numpy()[None] if probes is None else probes
     faces = torch.as_tensor(faces, dtype=torch.long, device=device)
+    mask = occlusion_mask(verts, faces, probes)  # (..., F)
+    # Facets hidden in every mesh of the batch have weight 0 and no gradient: skip them (about half).
+    seen = (mask > 0).reshape(-1, len(faces)).any(0)  # (F,)
+    faces, mask = faces[seen], mask[..., seen]
     centroids, normals, areas = facet_geometry_torch(verts, faces)
-    weights = areas * soft_visibility(centroids, normals, centre, beta)
-    slope = radar.slope_hz_per_s if radar.rvp else 0.0
+    weights = areas * mask * soft_visibility(centroids, normals, centre, beta)
+    edges = verts[..., faces, :] - centroids[..., None, :] if radar.facet == "po" else None
     batch = int(np.prod(verts.shape[:-2], dtype=np.int64))
-    chunk = max(1, TERMS_PER_CHUNK // (batch * len(faces) * len(freqs)))
+    chunk = max(1, TERMS_PER_CHUNK // max(1, batch * len(faces) * len(freqs)))
     parts = []
     for start in range(0, len(positions), chunk):
-        args = (centroids, normals, weights, positions[start : start + chunk], freqs, radar.p, radar.kappa, slope)
+        args = (centroids, normals, weights, edges, positions[start : start + chunk], freqs, radar)
         if torch.is_grad_enabled() and verts.requires_grad:
             parts.append(checkpoint(_echo_chunk, *args, use_reentrant=False))
         else:

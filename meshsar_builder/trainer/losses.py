@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from meshsar_builder.radar.differentiable import echo_torch
+from meshsar_builder.radar.differentiable import aperture_probes, echo_torch
 from meshsar_builder.radar.params import RadarParams
 
 RADAR_MODES = ("raw", "profile")
@@ -146,7 +146,8 @@ def radar_loss(verts: torch.Tensor, faces: torch.Tensor, echo: torch.Tensor, pos
         raise ValueError(f"mode: must be one of {', '.join(RADAR_MODES)}, got {mode!r}")
     terms = []
     for v in range(echo.shape[1]):
-        predicted = echo_torch(verts, faces, positions[v], freqs, radar, beta=beta, centre=centres[v])  # (B, M, Ef)
+        predicted = echo_torch(verts, faces, positions[v], freqs, radar, beta=beta, centre=centres[v],
+                               probes=aperture_probes(centres[v], radar))  # (B, M, Ef)
         target = echo[:, v]  # (B, M, Ef)
         if mode == "profile":
             predicted, target = range_profile(predicted), range_profile(target)
