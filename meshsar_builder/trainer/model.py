@@ -22,6 +22,7 @@ from torch.nn import functional as F
 from meshsar_builder.trainer.losses import adjacent_face_pairs, mesh_edges, neighbour_mean
 
 POOLINGS = ("max", "mean", "std")
+NORMS = ("none", "batch")
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,7 @@ class ModelConfig:
     template_radius_mm: float = 0.0  # 0: the mean vertex radius of the training meshes
     pooling: tuple[str, ...] = POOLINGS  # over views; ["max"] is the max-pooling-only ablation
     input_pool: int = 1  # average-pool the images by this factor first (2 halves 128 px: CPU configs)
+    norm: str = "none"  # after each graph convolution: none | batch (the paper's graph conv + BatchNorm + ReLU)
 
     def __post_init__(self):
         if not self.encoder_channels or min(self.encoder_channels) < 1:
@@ -57,6 +59,8 @@ class ModelConfig:
             raise ValueError(f"pooling: distinct names from {list(POOLINGS)}, got {list(self.pooling)}")
         if self.input_pool < 1:
             raise ValueError(f"input_pool: must be >= 1, got {self.input_pool}")
+        if self.norm not in NORMS:
+            raise ValueError(f"norm: must be one of {', '.join(NORMS)}, got {self.norm!r}")
 
     @property
     def stages(self) -> int:
@@ -196,24 +200,39 @@ class GraphConv(nn.Module):
         return self.own(x) + self.neighbours(neighbour_mean(x, edges, x.shape[1]))
 
 
-class GraphResBlock(nn.Module):
-    """Pixel2Mesh residual block: (x + relu(gc2(relu(gc1(x))))) / 2."""
+class VertexBatchNorm(nn.BatchNorm1d):
+    """BatchNorm over every vertex of every mesh of the batch: (B, n, F) -> (B, n, F)."""
 
-    def __init__(self, width: int):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x.reshape(-1, x.shape[-1])).reshape(x.shape)
+
+
+def graph_norm(norm: str, width: int) -> nn.Module:
+    """The normalisation after a graph convolution: none (identity, no parameters) or batch."""
+    return VertexBatchNorm(width) if norm == "batch" else nn.Identity()
+
+
+class GraphResBlock(nn.Module):
+    """Pixel2Mesh residual block: (x + relu(n2(gc2(relu(n1(gc1(x))))))) / 2, n: the chosen normalisation."""
+
+    def __init__(self, width: int, norm: str = "none"):
         super().__init__()
         self.first, self.second = GraphConv(width, width), GraphConv(width, width)
+        self.norm_first, self.norm_second = graph_norm(norm, width), graph_norm(norm, width)
 
     def forward(self, x: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-        return 0.5 * (x + F.relu(self.second(F.relu(self.first(x, edges)), edges)))
+        h = F.relu(self.norm_first(self.first(x, edges)))
+        return 0.5 * (x + F.relu(self.norm_second(self.second(h, edges))))
 
 
 class DeformStage(nn.Module):
     """Input features (B, n, Fin) -> (hidden (B, n, H), displacement (B, n, 3))."""
 
-    def __init__(self, cin: int, hidden: int, blocks: int):
+    def __init__(self, cin: int, hidden: int, blocks: int, norm: str = "none"):
         super().__init__()
         self.inp = GraphConv(cin, hidden)
-        self.blocks = nn.ModuleList(GraphResBlock(hidden) for _ in range(blocks))
+        self.norm = graph_norm(norm, hidden)
+        self.blocks = nn.ModuleList(GraphResBlock(hidden, norm) for _ in range(blocks))
         self.out = GraphConv(hidden, 3)
         # Zero displacement at initialisation: the untrained model returns the template.
         for layer in (self.out.own, self.out.neighbours):
@@ -221,7 +240,7 @@ class DeformStage(nn.Module):
         nn.init.zeros_(self.out.own.bias)
 
     def forward(self, x: torch.Tensor, edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        h = F.relu(self.inp(x, edges))
+        h = F.relu(self.norm(self.inp(x, edges)))
         for block in self.blocks:
             h = block(h, edges)
         return h, self.out(h, edges)
@@ -253,7 +272,7 @@ class SAR2Mesh(nn.Module):
         pooled = len(config.pooling)
         self.stages = nn.ModuleList(
             DeformStage(3 + (config.hidden if k else 0) + pooled * sum(config.encoder_channels[s] for s in scales),
-                        config.hidden, config.blocks)
+                        config.hidden, config.blocks, config.norm)
             for k, scales in enumerate(config.stage_scales))
 
     def topology(self, stage: int = -1) -> dict[str, torch.Tensor]:
