@@ -1,4 +1,4 @@
-"""Trainer: config validation, overfitting one sample, resuming, DDP on CPU, evaluation of a run."""
+"""Trainer: config validation, overfitting one sample, resuming, validation, DDP on CPU, evaluation of a run."""
 
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ name = "tiny"
 seed = 3
 [data]
 batch_size = 2
+val_fraction = 0.2
 [model]
 encoder_channels = [4, 8]
 hidden = 16
@@ -47,7 +48,8 @@ epochs = 2
 
 
 def make_dataset(root: Path, n: int = 6, shard_size: int = 3) -> Path:
-    """A tiny build folder: ellipsoid meshes, random images, the echo of each mesh, a seed-0 split."""
+    """A tiny build folder: ellipsoid meshes, random images, the echo of each mesh, a seed-0 split
+    (train s1 | s3 s4 s5 by shard: ranks dealt whole shards would get 1 and 3 samples)."""
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     sphere = trimesh.creation.icosphere(2)
@@ -149,6 +151,40 @@ def test_resume_matches_an_uninterrupted_run(tiny_data, tmp_path):
     for a, b in zip(whole.model.state_dict().values(), resumed.model.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
     assert T.read_log(tmp_path / "part" / T.LOG) == resumed.log
+    row = resumed.log[1]
+    assert row["samples"] == 3  # 4 train samples, 1 held out for validation
+    for name in T.LOSS_TERMS:  # the per-stage columns add up to the term
+        assert sum(row[f"{name}_s{k}"] for k in range(3)) == pytest.approx(row[name], rel=1e-6)  # float32 terms
+    assert 0 < row["val_dice"] <= 1 and row["val_assd_mm"] > 0 and row["val_total"] > 0
+    best = T.load_checkpoint(tmp_path / "part" / T.BEST)
+    assert best["val"]["dice"] == max(r["val_dice"] for r in resumed.log)
+    assert best["epoch"] == 1 + max(resumed.log, key=lambda r: r["val_dice"])["epoch"]
+    model, _, info = T.load_run(tmp_path / "part")
+    assert info["checkpoint"] == T.BEST
+
+
+def test_validation_is_a_seeded_part_of_the_train_split(tiny_data):
+    index = T.read_index(tiny_data)
+    train = T.split_ids(tiny_data, index, "train", 0)
+    test = T.split_ids(tiny_data, index, "test", 0)
+    fit, val = T.validation_split(tiny_data, index, 0, 0.5)
+    assert sorted(fit + val) == sorted(train) and len(val) == 2 and not set(val) & set(test)
+    assert T.validation_split(tiny_data, index, 0, 0.5) == (fit, val)
+    assert T.validation_split(tiny_data, index, 0, 0.0) == (train, [])
+
+
+@pytest.mark.parametrize("n, batch, world", [(5, 1, 2), (7, 2, 3), (4, 3, 2), (9, 4, 4), (3, 2, 1)])
+def test_epoch_batches_see_every_sample_once_on_equal_step_counts(n, batch, world):
+    ranks = [T.epoch_batches(n, batch, world, r, seed=1, epoch=2) for r in range(world)]
+    assert len({len(r) for r in ranks}) == 1  # the same number of steps on every rank
+    seen = sorted(i for r in ranks for b, w in r if w > 0 for i in b)
+    assert seen == list(range(n))
+    for step in zip(*ranks):
+        # DDP averages over ranks: sum_r w_r mean_r / world is then the mean over the global batch.
+        total = sum(len(b) for b, w in step if w > 0)
+        assert sum(w * len(b) for b, w in step) / world == pytest.approx(sum(len(b) ** 2 / total for b, w in step if w > 0))
+        assert all(w == pytest.approx(len(b) * world / total) for b, w in step if w > 0)
+    assert T.epoch_batches(n, batch, world, 0, seed=1, epoch=2) == ranks[0]  # every rank can recompute it
 
 
 def test_a_run_refuses_another_config(tiny_data, tmp_path):
@@ -157,30 +193,41 @@ def test_a_run_refuses_another_config(tiny_data, tmp_path):
         T.train(T.parse_config(TINY_CONFIG), tiny_data, out=tmp_path, progress=False)
 
 
-def _ddp_worker(rank: int, world: int, port: int, data: str, out: str) -> None:
+def _ddp_worker(rank: int, world: int, port: int, data: str, out: str, config_text: str) -> None:
     import os
 
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
     torch.set_num_threads(1)
-    config = T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1").replace("batch_size = 2", "batch_size = 1"))
-    result = T.train(config, data, out=Path(out) / "run", progress=False)
+    result = T.train(T.parse_config(config_text), data, out=Path(out) / "run", progress=False)
     flat = torch.cat([p.detach().flatten() for p in result.model.parameters()])
-    torch.save({"params": flat, "steps": result.log[0]["steps"]}, Path(out) / f"rank{rank}.pt")
+    torch.save({"params": flat, "log": result.log}, Path(out) / f"rank{rank}.pt")
     torch.distributed.destroy_process_group()
 
 
 @pytest.mark.slow
-def test_two_process_ddp_keeps_ranks_equal(tiny_data, tmp_path):
+def test_two_process_ddp_sees_every_sample_of_uneven_shards(tiny_data, tmp_path):
+    """2 ranks x batch 1 over 3 samples (2 + 1) equal one process with batch 2: the same global batches."""
+    single = TINY_CONFIG.replace("epochs = 2", "epochs = 1")
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    torch.multiprocessing.spawn(_ddp_worker, args=(2, port, str(tiny_data), str(tmp_path)), nprocs=2)
+    ddp = single.replace("batch_size = 2", "batch_size = 1")
+    torch.multiprocessing.spawn(_ddp_worker, args=(2, port, str(tiny_data), str(tmp_path), ddp), nprocs=2)
     ranks = [torch.load(tmp_path / f"rank{r}.pt", weights_only=True) for r in range(2)]
-    assert ranks[0]["steps"] >= 1 and ranks[0]["steps"] == ranks[1]["steps"]
+    assert ranks[0]["log"][0]["samples"] == 3 and ranks[0]["log"][0]["steps"] == 2
+    assert ranks[0]["log"][0]["val_dice"] > 0  # rank 0 validated
     torch.testing.assert_close(ranks[0]["params"], ranks[1]["params"], rtol=0, atol=0)
-    initial = T.build_model(T.parse_config(TINY_CONFIG), T.load_checkpoint(tmp_path / "run" / T.CHECKPOINT)["info"])
-    assert not torch.equal(torch.cat([p.flatten() for p in initial.parameters()]), ranks[0]["params"])
+    torch.set_num_threads(1)
+    reference = T.train(T.parse_config(single), tiny_data, out=tmp_path / "single", progress=False)
+    assert reference.log[0]["samples"] == 3
+    assert ranks[0]["log"][0]["total"] == pytest.approx(reference.log[0]["total"], rel=1e-5)
+    flat = torch.cat([p.detach().flatten() for p in reference.model.parameters()])
+    # Adam moves each weight by ~lr per step whatever its gradient's size, so float noise on near-zero
+    # gradients shows as up to a few % of one step (3e-3); a wrongly weighted or skipped sample moves
+    # most weights by a whole step.
+    assert (ranks[0]["params"] - flat).abs().max() < 3e-4
+    assert (ranks[0]["params"] - flat).abs().median() < 1e-6
 
 
 @pytest.mark.slow
@@ -201,7 +248,7 @@ def test_overfits_one_sample(tiny_data):
     curve = []
     for step in range(300):
         meshes = model(batch["sar"])
-        terms = T.batch_losses(meshes, model, batch, geometry, config, 0.0, T.step_generator(0, 0, step, 0))
+        terms = T.batch_losses(meshes, model, batch, geometry, config, 0.0, T.sample_generators(0, step, ["s0"]))
         optimizer.zero_grad()
         terms["total"].backward()
         optimizer.step()
