@@ -268,11 +268,12 @@ def test_evaluate_writes_metrics_tables_and_renders(tiny_data, tmp_path):
     from meshsar_builder.trainer.evaluate import COLUMNS, evaluate
 
     T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1")), tiny_data, out=tmp_path, progress=False)
-    summary = evaluate(tmp_path, tiny_data, renders=1, samples=2000, progress=False)
+    summary = evaluate(tmp_path, tiny_data, samples=2000, progress=False)
     out = tmp_path / "eval-seed-0"
     for name in ("metrics.csv", "summary.md", "summary.json", "renders.png"):
         assert (out / name).exists(), name
-    assert set(summary) == {"toy", "all"} and set(summary["all"]) == {"sar2mesh", "template"}
+    assert set(summary) == {"toy", "all"} and set(summary["all"]) == {"sar2mesh", "template", "mean_shape"}
+    assert "best.pt" in (out / "summary.md").read_text()
     table = (out / "summary.md").read_text()
     assert table.index("dice") < table.index("assd_mm") < table.index("hd_mm") < table.index("si_pct")
     assert all(np.isfinite(summary["all"]["sar2mesh"][c][0]) for c in COLUMNS)
