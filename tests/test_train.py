@@ -89,6 +89,8 @@ def test_shipped_configs_parse():
     assert paper.optim.lr == 1e-3 and paper.data.batch_size == 1 and paper.optim.epochs == 500
     assert paper.loss.weights == (0.3, 0.05, 0.46, 0.16)
     assert paper.radar_loss.weight == 0.1 and paper.radar_loss.warmup_epochs == 20
+    assert paper.radar_loss.ramp_epochs == 0 and paper.radar_loss.mode == "raw" and paper.radar_loss.balance == "none"
+    assert paper.model.norm == "batch" and paper.optim.schedule == "constant" and not paper.run.amp
     assert default.model.stages == paper.model.stages == 3
 
 
