@@ -71,7 +71,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.evaluate import evaluate
 
-    evaluate(args.run, args.data, args.split, renders=args.renders, device=args.device, checkpoint=args.checkpoint)
+    evaluate(args.run, args.data, args.split, renders=args.renders, device=args.device, checkpoint=args.checkpoint,
+             compare=tuple(args.compare))
     print((Path(args.run) / f"eval-{args.split}" / "summary.md").read_text())
     return 0
 
@@ -126,6 +127,8 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="built dataset folder")
     e.add_argument("--split", default="seed-0")
     e.add_argument("--renders", type=int, help="samples drawn in renders.png (default all)")
+    e.add_argument("--with", dest="compare", metavar="RUN", action="append", default=[],
+                   help="another run evaluated beside it in the same table, e.g. an implicit baseline (repeatable)")
     add_run_options(e)
     e.set_defaults(func=cmd_evaluate)
     pr = sub.add_parser("predict", help="meshes (PLY) and a gallery from a trained run, for a split or an images file")

@@ -102,6 +102,14 @@ def test_closest_point_regions_of_one_triangle():
     np.testing.assert_allclose(closest_on_triangles(points, tri)[0], expected, atol=1e-12)
 
 
+def test_inside_matches_a_sphere_away_from_its_facets():
+    mesh = trimesh.creation.icosphere(4, radius=30.0)
+    points = np.random.default_rng(4).uniform(-40, 40, (4000, 3))
+    radius = np.linalg.norm(points, axis=1)
+    clear = np.abs(radius - 30) > 0.1  # facets sag by < 0.03 mm at this level
+    np.testing.assert_array_equal(M.inside(points, mesh.vertices, mesh.faces)[clear], radius[clear] < 30)
+
+
 def test_voxelised_box_volume():
     box = trimesh.creation.box(extents=(10.0, 6.0, 4.0))
     lo = np.array([-6.0, -4.0, -3.0])

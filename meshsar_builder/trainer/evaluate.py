@@ -1,14 +1,16 @@
-"""`meshsar evaluate RUN --data OUT [--split seed-0] [--device D] [--renders N]`: metrics of a run on the test split.
+"""`meshsar evaluate RUN --data OUT [--split seed-0] [--with RUN2 ...] [--device D] [--renders N]`: test metrics.
 
 Writes RUN/eval-<split>/:
     metrics.csv   one row per (sample, method): sample_id, source, subset, method, COLUMNS
     summary.md    mean ± std per source (and over all), methods as rows, COLUMNS in order
     summary.json  the same numbers as plain data
     renders.png   ground truth beside prediction in every view (every sample, or the first N)
-Methods: "sar2mesh" (the run's final mesh, from its best validation checkpoint) and
-two baselines that see no images: "template" (the undeformed sphere at the model's
-template radius) and "mean_shape" (the mean of the training shapes, each centred at
-the heart frame's origin: the check that the images help at all).
+Methods: the run's model, named by its [model] kind ("sar2mesh", or "implicit" for
+the learned occupancy baseline), from its best validation checkpoint; the runs given
+with --with beside it (kind, or kind-name when taken); and two baselines that see no
+images: "template" (the undeformed sphere at the model's template radius) and
+"mean_shape" (the mean of the training shapes, each centred at the heart frame's
+origin: the check that the images help at all).
 """
 
 from __future__ import annotations
@@ -22,17 +24,15 @@ import numpy as np
 from tqdm import tqdm
 
 from meshsar_builder.dataset.card import plt, render_views, save_figure
-from skimage.measure import marching_cubes
-
 from meshsar_builder.dataset.readers import MeshSARDataset
 from meshsar_builder.dataset.shards import read_index
+from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
-from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics, voxelise
+from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics, occupancy_surface, voxelise
 from meshsar_builder.trainer.model import icosphere_levels
-from meshsar_builder.trainer.predict import predict_verts
 from meshsar_builder.trainer.train import DatasetGeometry, Subset, load_run, pick_device, split_seed
 
-METHODS = ("sar2mesh", "template", "mean_shape")
+BASELINES = ("template", "mean_shape")
 HIGHER_IS_BETTER = {"dice", "jaccard"}
 
 
@@ -40,26 +40,6 @@ def template_mesh(level: int, radius_mm: float) -> tuple[np.ndarray, np.ndarray]
     """The undeformed template as a smooth icosphere of the final level: verts (n, 3) mm, faces (m, 3)."""
     verts, faces, _ = icosphere_levels(level)
     return verts[level] * radius_mm, faces[level]
-
-
-def signed_volume(verts: np.ndarray, faces: np.ndarray) -> float:
-    """Volume enclosed by a closed mesh, mm^3: positive when its faces wind outward."""
-    tri = verts[faces]
-    return float(np.einsum("fc,fc->f", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6)
-
-
-def occupancy_surface(occupancy: np.ndarray, lo: np.ndarray, voxel_mm: float,
-                      level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Closed outward mesh of {occupancy > level} by marching cubes: verts (n, 3) mm, faces (m, 3).
-
-    occupancy (X, Y, Z) sampled at voxel centres lo + (i + 0.5) voxel_mm; padded with zeros so the
-    surface closes at the grid's border.
-    """
-    padded = np.pad(occupancy.astype(np.float32), 1)
-    verts, faces, _, _ = marching_cubes(padded, level, spacing=(voxel_mm,) * 3)
-    verts = verts + lo + (0.5 - 1) * voxel_mm  # index 0 of the padded grid is one voxel before lo's centre
-    faces = faces.astype(np.int64)
-    return verts, faces if signed_volume(verts, faces) > 0 else faces[:, ::-1].copy()
 
 
 def mean_shape(meshes: list[tuple[np.ndarray, np.ndarray]], voxel_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -81,7 +61,7 @@ def summarise(rows: list[dict]) -> dict:
     for group in groups:
         chosen = [r for r in rows if group == "all" or r["source"] == group]
         out[group] = {}
-        for method in METHODS:
+        for method in dict.fromkeys(r["method"] for r in rows):
             values = [r for r in chosen if r["method"] == method]
             if values:
                 out[group][method] = {c: [float(np.mean([v[c] for v in values])), float(np.std([v[c] for v in values])),
@@ -141,8 +121,9 @@ def training_shapes(run: Path, data: Path, split: str) -> list[tuple[np.ndarray,
 
 def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, split: str = "seed-0",
              renders: int | None = None, device: str = "cpu", samples: int = 20_000, progress: bool = True,
-             checkpoint: str = "best") -> dict:
-    """Evaluate a run on the test split of `split`; returns the summary (see module docstring).
+             checkpoint: str = "best", compare: tuple[str | os.PathLike, ...] = ()) -> dict:
+    """Evaluate a run (and the runs in `compare`) on the test split of `split`; returns the summary
+    (see module docstring), written under RUN/eval-<split>.
 
     data: the build folder (default: the one the run was trained on); renders: samples drawn
     (None: all); checkpoint: "best" (validation) or "last".
@@ -152,22 +133,29 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
     model, config, info = load_run(run, device, checkpoint)
     data = Path(data if data is not None else info["data"])
     index = read_index(data)
-    geometry = DatasetGeometry.from_index(index, tuple(info["view_names"]))
-    dataset = MeshSARDataset(data, "test", seed=split_seed(split), channels=list(info["channels"]))
-    baselines = (template_mesh(config.model.template_level, info["template_radius_mm"]),
-                 mean_shape(training_shapes(run, data, split)))
-    faces = model.topology()["faces"].cpu().numpy()
+    learned = []  # (method, model, view positions, channel positions)
+    for path, (net, cfg, inf) in [(run, (model, config, info)), *((p, load_run(p, device, checkpoint)) for p in compare)]:
+        taken = [m for m, *_ in learned]
+        method = cfg.model.kind if cfg.model.kind not in taken else f"{cfg.model.kind}-{cfg.name}"
+        missing = [c for c in inf["channels"] if c not in index["channels"]]
+        if missing:
+            raise InputError(f"{data}: lacks the channels {missing} that run {path} uses")
+        views = DatasetGeometry.from_index(index, tuple(inf["view_names"])).view_index
+        learned.append((method, net, views, [index["channels"].index(c) for c in inf["channels"]]))
+    dataset = MeshSARDataset(data, "test", seed=split_seed(split))
+    baselines = {"template": template_mesh(config.model.template_level, info["template_radius_mm"]),
+                 "mean_shape": mean_shape(training_shapes(run, data, split))}
     rows, pairs = [], []
     for i in tqdm(range(len(dataset)), desc="evaluate", disable=not progress):
         sample = dataset[i]
-        verts = predict_verts(model, sample["sar"][geometry.view_index], device)
+        meshes = {method: net.predict_mesh(sample["sar"][views][:, channels]) for method, net, views, channels in learned}
         gt = (sample["verts"].double().numpy(), sample["faces"].numpy())
-        for method, (pv, pf) in zip(METHODS, ((verts, faces), *baselines)):
+        for method, (pv, pf) in {**meshes, **baselines}.items():
             metrics = mesh_metrics(pv, pf, *gt, samples=samples, seed=i)
             rows.append({"sample_id": sample["sample_id"], "source": sample["meta"].get("source", ""),
                          "subset": sample["meta"].get("subset", ""), "method": method, **metrics})
         if renders is None or len(pairs) < renders:
-            pairs.append((sample["sample_id"], [("truth", gt), ("prediction", (verts, faces))]))
+            pairs.append((sample["sample_id"], [("truth", gt), *meshes.items()]))
     out = run / f"eval-{split}"
     summary = summarise(rows)
     write_csv(out / "metrics.csv", rows)
@@ -175,6 +163,5 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
     write_bytes(out / "summary.md", (title + markdown(summary)).encode())
     write_json(out / "summary.json", summary)
     if pairs:
-        views = [index["views"][k] for k in geometry.view_index]
-        render_gallery(pairs, views, geometry.fov_mm, out / "renders.png")
+        render_gallery(pairs, [index["views"][k] for k in learned[0][2]], float(index["fov_mm"]), out / "renders.png")
     return summary

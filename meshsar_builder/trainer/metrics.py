@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
 
 from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface
 from meshsar_builder.geometry.remesh import self_intersecting_faces
@@ -42,6 +43,37 @@ def voxelise(verts: np.ndarray, faces: np.ndarray, lo: np.ndarray, shape: tuple[
     toggles = np.zeros((len(origins), nz + 1), dtype=np.int64)
     np.add.at(toggles, (ray, start), 1)
     return (np.cumsum(toggles[:, :nz], axis=1) % 2 == 1).reshape(nx, ny, nz)
+
+
+def inside(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of points (N, 3) lie inside a closed mesh (verts (n, 3), faces (m, 3)), by the
+    parity of the Embree hits of a ray from each point along a fixed oblique direction."""
+    # Oblique, so rays from points on a lattice do not run along mesh edges.
+    direction = np.array([0.2719, 0.3821, 0.8831])
+    points = np.asarray(points, dtype=np.float64)
+    _, ray, _ = embree_intersector(verts, faces).intersects_location(
+        points, np.tile(direction / np.linalg.norm(direction), (len(points), 1)), multiple_hits=True)
+    return np.bincount(ray, minlength=len(points)) % 2 == 1
+
+
+def signed_volume(verts: np.ndarray, faces: np.ndarray) -> float:
+    """Volume enclosed by a closed mesh, mm^3: positive when its faces wind outward."""
+    tri = verts[faces]
+    return float(np.einsum("fc,fc->f", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6)
+
+
+def occupancy_surface(occupancy: np.ndarray, lo: np.ndarray, voxel_mm: float,
+                      level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Closed outward mesh of {occupancy > level} by marching cubes: verts (n, 3) mm, faces (m, 3).
+
+    occupancy (X, Y, Z) sampled at voxel centres lo + (i + 0.5) voxel_mm; padded with zeros so the
+    surface closes at the grid's border.
+    """
+    padded = np.pad(occupancy.astype(np.float32), 1)
+    verts, faces, _, _ = marching_cubes(padded, level, spacing=(voxel_mm,) * 3)
+    verts = verts + lo + (0.5 - 1) * voxel_mm  # index 0 of the padded grid is one voxel before lo's centre
+    faces = faces.astype(np.int64)
+    return verts, faces if signed_volume(verts, faces) > 0 else faces[:, ::-1].copy()
 
 
 def overlap(pred: tuple[np.ndarray, np.ndarray], gt: tuple[np.ndarray, np.ndarray], voxel_mm: float = 0.5) -> dict:

@@ -23,12 +23,17 @@ from meshsar_builder.trainer.losses import adjacent_face_pairs, mesh_edges, neig
 
 POOLINGS = ("max", "mean", "std")
 NORMS = ("none", "batch")
+KINDS = ("sar2mesh", "implicit")
 
 
 @dataclass(frozen=True)
 class ModelConfig:
     """Trainer config table [model]."""
 
+    # sar2mesh: the deforming-template network; implicit: the occupancy baseline (trainer.implicit),
+    # which uses encoder_channels, hidden, blocks (MLP layers), the scales of stage_scales, pooling,
+    # input_pool and the implicit_* keys.
+    kind: str = "sar2mesh"
     encoder_channels: tuple[int, ...] = (16, 32, 64, 128)  # UNet width per scale, full resolution first
     hidden: int = 128  # graph-convolution width
     blocks: int = 2  # residual graph-convolution blocks per stage
@@ -40,6 +45,9 @@ class ModelConfig:
     pooling: tuple[str, ...] = POOLINGS  # over views; ["max"] is the max-pooling-only ablation
     input_pool: int = 1  # average-pool the images by this factor first (2 halves 128 px: CPU configs)
     norm: str = "none"  # after each graph convolution: none | batch (the paper's graph conv + BatchNorm + ReLU)
+    implicit_points: int = 2048  # occupancy queries per sample and step: half near the surface, half uniform
+    implicit_noise_mm: float = 5.0  # std of the near-surface queries' offsets
+    implicit_grid: int = 64  # marching-cubes grid per axis over the field of view
 
     def __post_init__(self):
         if not self.encoder_channels or min(self.encoder_channels) < 1:
@@ -61,6 +69,10 @@ class ModelConfig:
             raise ValueError(f"input_pool: must be >= 1, got {self.input_pool}")
         if self.norm not in NORMS:
             raise ValueError(f"norm: must be one of {', '.join(NORMS)}, got {self.norm!r}")
+        if self.kind not in KINDS:
+            raise ValueError(f"kind: must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if self.implicit_points < 2 or self.implicit_noise_mm <= 0 or self.implicit_grid < 8:
+            raise ValueError("implicit_points: need >= 2, implicit_noise_mm: > 0, implicit_grid: >= 8")
 
     @property
     def stages(self) -> int:
@@ -169,6 +181,15 @@ def sample_views(features: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
     sampled = F.grid_sample(features, grid.reshape(b * v, n, 1, 2).to(features.dtype),
                             mode="bilinear", padding_mode="zeros", align_corners=False)  # (B*V, F, n, 1)
     return sampled.reshape(b, v, -1, n).transpose(2, 3)
+
+
+def encode(encoder: "UNet", sar: torch.Tensor, input_pool: int) -> list[torch.Tensor]:
+    """Feature maps per scale of every view: sar (B, V, C, H, W) -> [(B*V, c_s, h_s, w_s)]."""
+    images = sar.flatten(0, 1)
+    if input_pool > 1:
+        # Pooling whole pixel blocks keeps the DESIGN pixel grid: normalised coordinates still match.
+        images = F.avg_pool2d(images, input_pool)
+    return encoder(images)
 
 
 def pool_views(per_view: torch.Tensor, modes: tuple[str, ...]) -> torch.Tensor:
@@ -284,18 +305,20 @@ class SAR2Mesh(nn.Module):
         """The template scaled to template_radius_mm, as the first stage sees it: (n_0, 3) mm."""
         return self.template * self.half_fov
 
+    def predict_mesh(self, sar: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """The final mesh of one sample: sar (V, C, H, W) -> verts (n, 3) float64 mm, faces (m, 3)."""
+        with torch.no_grad():
+            verts = self(sar[None].to(self.template.device))[-1][1][0]
+        return verts.cpu().double().numpy(), self.topology()["faces"].cpu().numpy()
+
     def forward(self, sar: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """sar (B, V, C, H, W) -> per stage (input vertices, output vertices), each (B, n_k, 3) mm.
 
         The input of stage k is the output of stage k-1 (unpooled): the Laplacian loss
         compares against it.
         """
-        b, v = sar.shape[:2]
-        images = sar.flatten(0, 1)
-        if self.config.input_pool > 1:
-            # Pooling whole pixel blocks keeps the DESIGN pixel grid: normalised coordinates still match.
-            images = F.avg_pool2d(images, self.config.input_pool)
-        features = self.encoder(images)
+        b = sar.shape[0]
+        features = encode(self.encoder, sar, self.config.input_pool)
         pos = self.template.expand(b, -1, -1)
         hidden = None
         meshes = []

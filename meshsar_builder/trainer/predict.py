@@ -28,16 +28,9 @@ from meshsar_builder.dataset.readers import MeshSARDataset
 from meshsar_builder.dataset.shards import read_index
 from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import write_bytes
-from meshsar_builder.trainer.model import SAR2Mesh
 from meshsar_builder.trainer.train import load_run, pick_device, split_seed
 
 IMAGE_KEYS = ("views", "fov_mm", "image_size", "channels", "radar", "echo_grid")
-
-
-def predict_verts(model: SAR2Mesh, sar: torch.Tensor, device: torch.device | str) -> np.ndarray:
-    """Final-stage vertices (n, 3) float64 mm of one sample: sar (V, C, H, W), the model's views and channels."""
-    with torch.no_grad():
-        return model(sar[None].to(device))[-1][1][0].cpu().double().numpy()
 
 
 def write_images(path: str | os.PathLike, sar: np.ndarray, index: dict, sample_ids: list[str] | None = None) -> Path:
@@ -106,7 +99,6 @@ def predict(run: str | os.PathLike, data: str | os.PathLike | None = None, split
     run = Path(run)
     torch_device = pick_device(device, 0)
     model, _, info = load_run(run, torch_device, checkpoint)
-    faces = model.topology()["faces"].cpu().numpy()
     if images is not None:
         ids, sar, index = read_images(images, info["view_names"], info["channels"], info["fov_mm"])
         samples = [(sid, sar[i], None) for i, sid in enumerate(ids)]
@@ -124,7 +116,7 @@ def predict(run: str | os.PathLike, data: str | os.PathLike | None = None, split
         out = Path(out) if out is not None else run / f"predict-{split}-{subset}"
     rows = []
     for sample_id, sar, truth in samples:
-        verts = predict_verts(model, sar, torch_device)
+        verts, faces = model.predict_mesh(sar)
         write_bytes(out / f"{sample_id}.ply", trimesh.Trimesh(verts, faces, process=False).export(file_type="ply"))
         if gallery is None or len(rows) < gallery:
             rows.append((sample_id, ([("truth", truth)] if truth is not None else []) + [("prediction", (verts, faces))]))

@@ -23,6 +23,7 @@ global batch's mean loss. Rank 0 validates and writes the run folder.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import math
@@ -45,6 +46,8 @@ from meshsar_builder.pipeline.seeding import item_rng, seed_sequence
 from meshsar_builder.radar.params import RadarParams
 from meshsar_builder.trainer import losses as L
 from meshsar_builder.trainer.config import TrainConfig, load_config, parse_config, split_seed
+from meshsar_builder.trainer.implicit import ImplicitSAR, occupancy_loss
+from meshsar_builder.trainer.metrics import mesh_metrics
 from meshsar_builder.trainer.model import SAR2Mesh
 
 CHECKPOINT = "checkpoint.pt"
@@ -288,10 +291,32 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     return torch.load(path, map_location=device, weights_only=True)
 
 
-def build_model(config: TrainConfig, info: dict) -> SAR2Mesh:
-    """The model a checkpoint's `info` describes (frames, fov_mm, channels, template_radius_mm)."""
+def build_model(config: TrainConfig, info: dict) -> SAR2Mesh | ImplicitSAR:
+    """The model a checkpoint's `info` describes (frames, fov_mm, channels, template_radius_mm), of [model] kind."""
+    if config.model.kind == "implicit":
+        return ImplicitSAR(config.model, np.asarray(info["frames"]), info["fov_mm"], len(info["channels"]))
     return SAR2Mesh(config.model, np.asarray(info["frames"]), info["fov_mm"], len(info["channels"]),
                     info["template_radius_mm"])
+
+
+def loss_names(config: TrainConfig) -> list[str]:
+    """The loss terms step_terms returns for a config's model kind (log.csv's loss columns)."""
+    if config.model.kind == "implicit":
+        return ["occupancy", "total"]
+    return [*SUMMED, *(f"{n}_s{k}" for k in range(config.model.stages) for n in LOSS_TERMS)]
+
+
+def step_terms(net: torch.nn.Module, model: SAR2Mesh | ImplicitSAR, batch: dict, sar: torch.Tensor,
+               geometry: DatasetGeometry, config: TrainConfig, radar_weight: float,
+               generators: list[torch.Generator], autocast=contextlib.nullcontext) -> dict[str, torch.Tensor]:
+    """The loss terms (loss_names) of one batch: sar (B, V, C, H, W) on the model's device; net: the model or
+    its DDP wrapper; autocast: a context-manager factory the forward runs under."""
+    if isinstance(model, ImplicitSAR):
+        with autocast():
+            return occupancy_loss(net, model, batch, sar, generators)
+    with autocast():
+        meshes = net(sar)
+    return batch_losses(meshes, model, batch, geometry, config, radar_weight, generators)
 
 
 def load_run(run: str | os.PathLike, device: torch.device | str = "cpu",
@@ -314,10 +339,9 @@ def load_run(run: str | os.PathLike, device: torch.device | str = "cpu",
     return model.eval(), config, {**state["info"], "checkpoint": path.name, "epoch": state["epoch"]}
 
 
-def log_columns(stages: int) -> list[str]:
-    """log.csv's columns for a model of `stages` stages."""
-    per_stage = [f"{name}_s{k}" for k in range(stages) for name in LOSS_TERMS]
-    return [*INT_COLUMNS, *SUMMED, *per_stage, "val_total", *(f"val_{m}" for m in VAL_METRICS),
+def log_columns(config: TrainConfig) -> list[str]:
+    """log.csv's columns for a config."""
+    return [*INT_COLUMNS, *loss_names(config), "val_total", *(f"val_{m}" for m in VAL_METRICS),
             "radar_weight", "lr", "seconds"]
 
 
@@ -348,23 +372,19 @@ def tensorboard_writer(run: Path):
     return SummaryWriter(str(run / "tb"))
 
 
-def validate(model: SAR2Mesh, dataset: torch.utils.data.Dataset, geometry: DatasetGeometry, config: TrainConfig,
-             device: torch.device) -> dict[str, float]:
-    """Mean geometric loss ("total", radar off) and mean metrics (VAL_METRICS) of the final mesh over a dataset."""
-    from meshsar_builder.trainer.metrics import mesh_metrics  # the metrics pull in Embree and pymeshlab
-
+def validate(model: SAR2Mesh | ImplicitSAR, dataset: torch.utils.data.Dataset, geometry: DatasetGeometry,
+             config: TrainConfig, device: torch.device) -> dict[str, float]:
+    """Mean loss ("total", radar off) and mean metrics (VAL_METRICS) of the predicted meshes over a dataset."""
     model.eval()
-    faces = model.topology()["faces"].cpu().numpy()
     totals, rows = [], []
     with torch.no_grad():
         for i in range(len(dataset)):
             batch = collate_meshes([dataset[i]])
-            meshes = model(batch["sar"][:, geometry.view_index].to(device))
-            totals.append(batch_losses(meshes, model, batch, geometry, config, 0.0,
-                                       sample_generators(config.seed, -1, batch["sample_id"]))["total"].item())
-            verts = meshes[-1][1][0].cpu().double().numpy()
-            rows.append(mesh_metrics(verts, faces, batch["verts"][0].double().numpy(), batch["faces"][0].numpy(),
-                                     samples=config.run.val_samples, seed=i))
+            sar = batch["sar"][:, geometry.view_index].to(device)
+            totals.append(step_terms(model, model, batch, sar, geometry, config, 0.0,
+                                     sample_generators(config.seed, -1, batch["sample_id"]))["total"].item())
+            rows.append(mesh_metrics(*model.predict_mesh(sar[0]), batch["verts"][0].double().numpy(),
+                                     batch["faces"][0].numpy(), samples=config.run.val_samples, seed=i))
     model.train()
     return {"total": float(np.mean(totals)), **{m: float(np.mean([r[m] for r in rows])) for m in VAL_METRICS}}
 
@@ -418,7 +438,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         scaler.load_state_dict(state["scaler"])
         start, best_dice = state["epoch"], state.get("best_dice", -1.0)
     log = [row for row in read_log(run / LOG) if row["epoch"] < start]
-    columns = log_columns(config.model.stages)
+    columns = log_columns(config)
     board = tensorboard_writer(run) if rank == 0 else None
     if rank == 0:
         write_bytes(run / "config.toml", config.text.encode("utf-8"))
@@ -430,6 +450,10 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         model, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=bool(unused),
     ) if world > 1 else model
     autocast_dtype = torch.float16 if device.type == "cuda" else torch.bfloat16
+
+    def autocast():
+        return torch.autocast(device.type, dtype=autocast_dtype, enabled=amp)
+
     bar = tqdm(total=config.optim.epochs, initial=start, desc=f"train {config.name}", unit="epoch",
                disable=not progress or rank != 0)
     for epoch in range(start, config.optim.epochs):
@@ -441,15 +465,13 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         lr = lr_at(config, epoch)
         for group in optimizer.param_groups:
             group["lr"] = lr
-        names = [*SUMMED, *(f"{n}_s{k}" for k in range(config.model.stages) for n in LOSS_TERMS)]
+        names = loss_names(config)
         sums = torch.zeros(len(names) + 1, dtype=torch.float64)  # per-sample sums of the terms, then samples
         model.train()
         for batch, (_, weight) in zip(loader, batches):
             sar = batch["sar"][:, geometry.view_index].to(device)  # (B, V, C, H, W)
-            with torch.autocast(device.type, dtype=autocast_dtype, enabled=amp):
-                meshes = net(sar)
-            terms = batch_losses(meshes, model, batch, geometry, config, radar_weight,
-                                 sample_generators(config.seed, epoch, batch["sample_id"]))
+            terms = step_terms(net, model, batch, sar, geometry, config, radar_weight,
+                               sample_generators(config.seed, epoch, batch["sample_id"]), autocast)
             optimizer.zero_grad(set_to_none=True)
             scaler.scale(terms["total"] * weight).backward()
             scaler.step(optimizer)
@@ -465,8 +487,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         val = validate(model, val_set, geometry, config, device) if validated else {}
         row.update({f"val_{k}": val.get(k) for k in ("total", *VAL_METRICS)}, seconds=time.perf_counter() - began)
         log.append(row)
-        bar.set_postfix(loss=f"{row['total']:.4g}", chamfer=f"{row['chamfer']:.3g}",
-                        **({"val_dice": f"{val['dice']:.3f}"} if val else {}))
+        bar.set_postfix(loss=f"{row['total']:.4g}", **({"val_dice": f"{val['dice']:.3f}"} if val else {}))
         bar.update()
         if rank != 0:
             continue
