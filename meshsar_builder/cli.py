@@ -71,9 +71,24 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.evaluate import evaluate
 
-    evaluate(args.run, args.data, args.split)
+    evaluate(args.run, args.data, args.split, renders=args.renders, device=args.device, checkpoint=args.checkpoint,
+             compare=tuple(args.compare))
     print((Path(args.run) / f"eval-{args.split}" / "summary.md").read_text())
     return 0
+
+
+def cmd_predict(args: argparse.Namespace) -> int:
+    from meshsar_builder.trainer.predict import predict
+
+    print(predict(args.run, args.data, args.split, args.subset, args.images, args.device, args.out, args.checkpoint,
+                  args.gallery))
+    return 0
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"], help="default cpu")
+    p.add_argument("--checkpoint", default="best", choices=["best", "last"],
+                   help="best validation Dice (default; the last epoch when the run had no validation) or last")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -111,7 +126,22 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("run", help="run folder")
     e.add_argument("--data", required=True, help="built dataset folder")
     e.add_argument("--split", default="seed-0")
+    e.add_argument("--renders", type=int, help="samples drawn in renders.png (default all)")
+    e.add_argument("--with", dest="compare", metavar="RUN", action="append", default=[],
+                   help="another run evaluated beside it in the same table, e.g. an implicit baseline (repeatable)")
+    add_run_options(e)
     e.set_defaults(func=cmd_evaluate)
+    pr = sub.add_parser("predict", help="meshes (PLY) and a gallery from a trained run, for a split or an images file")
+    pr.add_argument("run", help="run folder")
+    source = pr.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", help="built dataset folder")
+    source.add_argument("--images", help="images file (.npz: sar (n, V, C, H, W) and the index's view metadata)")
+    pr.add_argument("--split", default="seed-0", help="with --data (default seed-0)")
+    pr.add_argument("--subset", default="test", help="with --data: which part of the split (default test)")
+    pr.add_argument("--out", help="output folder (default RUN/predict-<split>-<subset> or RUN/predict-<file stem>)")
+    pr.add_argument("--gallery", type=int, help="samples drawn in gallery.png (default all)")
+    add_run_options(pr)
+    pr.set_defaults(func=cmd_predict)
     from meshsar_builder.bench.suite import PARTS
 
     be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/")

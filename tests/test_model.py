@@ -58,10 +58,14 @@ def test_pool_views_concatenates_max_mean_std():
     torch.testing.assert_close(pooled[..., 8:], (x.var(1, unbiased=False) + 1e-6).sqrt())
 
 
-def test_default_model_shapes_and_untrained_output_is_the_template():
+@pytest.mark.parametrize("norm", Mo.NORMS)
+def test_default_model_shapes_and_untrained_output_is_the_template(norm):
     torch.set_num_threads(1)
-    config = Mo.ModelConfig(encoder_channels=(4, 8, 8, 8), hidden=8, blocks=1)
+    config = Mo.ModelConfig(encoder_channels=(4, 8, 8, 8), hidden=8, blocks=1, norm=norm)
     model = Mo.SAR2Mesh(config, FRAMES, 160.0, 2, 45.0)
+    norms = [m for m in model.modules() if isinstance(m, Mo.VertexBatchNorm)]
+    # The paper's GCN block: every graph convolution but the displacement output is followed by BatchNorm.
+    assert len(norms) == (3 * (1 + 2 * config.blocks) if norm == "batch" else 0)
     meshes = model(torch.rand(2, 3, 2, 32, 32))
     assert [m[1].shape for m in meshes] == [(2, 162, 3), (2, 642, 3), (2, 2562, 3)]
     assert model.topology()["faces"].shape == (5120, 3)
@@ -78,3 +82,34 @@ def test_model_config_rejects_unknown_scales_and_pooling():
         Mo.ModelConfig(pooling=("median",))
     with pytest.raises(ValueError, match="template_level"):
         Mo.ModelConfig(template_level=1)
+    with pytest.raises(ValueError, match="norm"):
+        Mo.ModelConfig(norm="layer")
+
+
+def test_vertex_batch_norm_normalises_over_all_vertices_of_the_batch():
+    x = torch.randn(2, 50, 4, dtype=torch.float64) * torch.tensor([1.0, 3.0, 0.5, 2.0], dtype=torch.float64) + 7
+    y = Mo.VertexBatchNorm(4).double()(x)
+    flat = y.reshape(-1, 4)
+    torch.testing.assert_close(flat.mean(0), torch.zeros(4, dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close(flat.var(0, unbiased=False), torch.ones(4, dtype=torch.float64), atol=1e-4, rtol=0)
+
+
+def test_implicit_queries_are_labelled_by_the_mesh_and_the_model_maps_them_to_logits():
+    import trimesh
+
+    from meshsar_builder.trainer import implicit as I
+
+    torch.set_num_threads(1)
+    sphere = trimesh.creation.icosphere(4, radius=30.0)
+    points, labels = I.occupancy_samples(torch.tensor(sphere.vertices), torch.tensor(sphere.faces), 1000, 5.0, 80.0,
+                                         torch.Generator().manual_seed(0))
+    radius = points.double().norm(dim=1)
+    clear = (radius - 30).abs() > 0.1
+    assert torch.equal(labels[clear] == 1, radius[clear] < 30)
+    assert (radius[:500] - 30).abs().mean() < 8 and points[500:].abs().max() <= 80  # near-surface half, cube half
+    config = Mo.ModelConfig(encoder_channels=(4, 8), hidden=8, blocks=1, stage_scales=((1,), (0,)), kind="implicit",
+                            implicit_grid=16)
+    model = I.ImplicitSAR(config, FRAMES, 160.0, 2)
+    assert model(torch.rand(2, 3, 2, 32, 32), points[None].expand(2, -1, -1)).shape == (2, 1000)
+    verts, faces = model.predict_mesh(torch.rand(3, 2, 32, 32))
+    assert verts.shape[1] == 3 and faces.max() < len(verts) and trimesh.Trimesh(verts, faces).is_watertight

@@ -20,7 +20,7 @@ from meshsar_builder.pipeline.io import write_json
 from meshsar_builder.radar.differentiable import echo_torch
 from meshsar_builder.radar.imaging import ImageParams
 from meshsar_builder.radar.params import RadarParams, index_metadata
-from meshsar_builder.trainer.train import DatasetGeometry, batch_losses, build_model, load_config, step_generator
+from meshsar_builder.trainer.train import DatasetGeometry, batch_losses, build_model, load_config, sample_generators
 
 CONFIGS = Path(__file__).resolve().parents[2] / "manifests" / "train"
 REPEATS = 3
@@ -52,7 +52,7 @@ def step_ms(config_name: str, radar_on: bool, geometry: DatasetGeometry, batch: 
         start = time.perf_counter()
         meshes = model(sub["sar"])
         terms = batch_losses(meshes, model, sub, geometry, config, config.radar_loss.weight if radar_on else 0.0,
-                             step_generator(0, 0, repeat, 0))
+                             sample_generators(0, repeat, [str(k) for k in range(len(sub["verts"]))]))
         optimizer.zero_grad(set_to_none=True)
         terms["total"].backward()
         optimizer.step()

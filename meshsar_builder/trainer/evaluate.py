@@ -1,12 +1,16 @@
-"""`meshsar evaluate RUN --data OUT [--split seed-0]`: metrics of a trained run on the test split.
+"""`meshsar evaluate RUN --data OUT [--split seed-0] [--with RUN2 ...] [--device D] [--renders N]`: test metrics.
 
 Writes RUN/eval-<split>/:
     metrics.csv   one row per (sample, method): sample_id, source, subset, method, COLUMNS
     summary.md    mean ± std per source (and over all), methods as rows, COLUMNS in order
     summary.json  the same numbers as plain data
-    renders.png   ground truth beside prediction in every view, for the first samples
-Methods: "sar2mesh" (the run's final mesh) and "template" (the undeformed sphere
-at the model's template radius: the baseline the network must beat).
+    renders.png   ground truth beside prediction in every view (every sample, or the first N)
+Methods: the run's model, named by its [model] kind ("sar2mesh", or "implicit" for
+the learned occupancy baseline), from its best validation checkpoint; the runs given
+with --with beside it (kind, or kind-name when taken); and two baselines that see no
+images: "template" (the undeformed sphere at the model's template radius) and
+"mean_shape" (the mean of the training shapes, each centred at the heart frame's
+origin: the check that the images help at all).
 """
 
 from __future__ import annotations
@@ -17,18 +21,18 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
 from meshsar_builder.dataset.card import plt, render_views, save_figure
 from meshsar_builder.dataset.readers import MeshSARDataset
 from meshsar_builder.dataset.shards import read_index
-from meshsar_builder.pipeline.io import write_bytes, write_json
-from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
+from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics, occupancy_surface, voxelise
 from meshsar_builder.trainer.model import icosphere_levels
-from meshsar_builder.trainer.train import DatasetGeometry, load_run, split_seed
+from meshsar_builder.trainer.train import DatasetGeometry, Subset, load_run, pick_device, split_seed
 
-METHODS = ("sar2mesh", "template")
+BASELINES = ("template", "mean_shape")
 HIGHER_IS_BETTER = {"dice", "jaccard"}
 
 
@@ -38,6 +42,18 @@ def template_mesh(level: int, radius_mm: float) -> tuple[np.ndarray, np.ndarray]
     return verts[level] * radius_mm, faces[level]
 
 
+def mean_shape(meshes: list[tuple[np.ndarray, np.ndarray]], voxel_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The mean of closed meshes (verts (n_i, 3) mm, faces (m_i, 3)) of any topologies: each is centred at
+    the origin (its vertex mean) and voxelised, and the surface where the fraction inside is 1/2 is
+    extracted by marching cubes. Returns verts (n, 3) mm, faces (m, 3), outward."""
+    centred = [(v - v.mean(0), f) for v, f in meshes]
+    extent = max(np.abs(v).max() for v, _ in centred) + 2 * voxel_mm
+    n = int(np.ceil(2 * extent / voxel_mm))
+    lo = np.full(3, -n * voxel_mm / 2)
+    occupancy = np.mean([voxelise(v, f, lo, (n, n, n), voxel_mm) for v, f in centred], axis=0)
+    return occupancy_surface(occupancy, lo, voxel_mm)
+
+
 def summarise(rows: list[dict]) -> dict:
     """{group: {method: {column: [mean, std, count]}}}, groups: every source, then "all"."""
     groups = sorted({r["source"] for r in rows}) + ["all"]
@@ -45,7 +61,7 @@ def summarise(rows: list[dict]) -> dict:
     for group in groups:
         chosen = [r for r in rows if group == "all" or r["source"] == group]
         out[group] = {}
-        for method in METHODS:
+        for method in dict.fromkeys(r["method"] for r in rows):
             values = [r for r in chosen if r["method"] == method]
             if values:
                 out[group][method] = {c: [float(np.mean([v[c] for v in values])), float(np.std([v[c] for v in values])),
@@ -75,14 +91,16 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     write_bytes(path, text.getvalue().encode("utf-8"))
 
 
-def render_pairs(pairs: list[tuple[str, tuple, tuple]], views: list[dict], fov_mm: float, path: Path) -> None:
-    """Per sample a row: per view the ground truth, then the prediction. pairs: (id, (v, f) gt, (v, f) pred)."""
-    cols = 2 * len(views)
-    fig, axes = plt.subplots(len(pairs), cols, figsize=(1.8 * cols, 1.9 * len(pairs)), squeeze=False)
-    for r, (sample_id, gt, pred) in enumerate(pairs):
-        for c, (what, mesh) in enumerate((("truth", gt), ("prediction", pred))):
+def render_gallery(rows: list[tuple[str, list[tuple[str, tuple]]]], views: list[dict], fov_mm: float,
+                   path: Path) -> None:
+    """Per sample a row: per view each of its meshes. rows: (sample id, [(label, (verts, faces)), ...])."""
+    per = len(rows[0][1])
+    cols = per * len(views)
+    fig, axes = plt.subplots(len(rows), cols, figsize=(1.8 * cols, 1.9 * len(rows)), squeeze=False)
+    for r, (sample_id, meshes) in enumerate(rows):
+        for c, (what, mesh) in enumerate(meshes):
             for k, image in enumerate(render_views(*mesh, None, views, fov_mm)):
-                ax = axes[r, 2 * k + c]
+                ax = axes[r, per * k + c]
                 ax.imshow(image)
                 if r == 0:
                     ax.set_title(f"{views[k]['name']}\n{what}", fontsize=8)
@@ -93,38 +111,57 @@ def render_pairs(pairs: list[tuple[str, tuple, tuple]], views: list[dict], fov_m
     save_figure(fig, path)
 
 
-def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, split: str = "seed-0",
-             renders: int = 4, device: str = "cpu", samples: int = 20_000, progress: bool = True) -> dict:
-    """Evaluate a run on the test split of `split`; returns the summary (see module docstring).
+def training_shapes(run: Path, data: Path, split: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The ground-truth meshes the run trained on (run.json's train_ids; else the split's train part)."""
+    dataset = MeshSARDataset(data, "train", seed=split_seed(split))
+    ids = read_json(run / "run.json").get("train_ids", dataset.ids) if (run / "run.json").exists() else dataset.ids
+    chosen = Subset(dataset, ids)
+    return [(chosen[i]["verts"].double().numpy(), chosen[i]["faces"].numpy()) for i in range(len(chosen))]
 
-    data: the build folder (default: the one the run was trained on); renders: samples drawn.
+
+def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, split: str = "seed-0",
+             renders: int | None = None, device: str = "cpu", samples: int = 20_000, progress: bool = True,
+             checkpoint: str = "best", compare: tuple[str | os.PathLike, ...] = ()) -> dict:
+    """Evaluate a run (and the runs in `compare`) on the test split of `split`; returns the summary
+    (see module docstring), written under RUN/eval-<split>.
+
+    data: the build folder (default: the one the run was trained on); renders: samples drawn
+    (None: all); checkpoint: "best" (validation) or "last".
     """
     run = Path(run)
-    model, config, info = load_run(run, device)
+    device = pick_device(device, 0)
+    model, config, info = load_run(run, device, checkpoint)
     data = Path(data if data is not None else info["data"])
     index = read_index(data)
-    geometry = DatasetGeometry.from_index(index, tuple(info["view_names"]))
-    dataset = MeshSARDataset(data, "test", seed=split_seed(split), channels=list(info["channels"]))
-    baseline = template_mesh(config.model.template_level, info["template_radius_mm"])
-    faces = model.topology()["faces"].cpu().numpy()
+    learned = []  # (method, model, view positions, channel positions)
+    for path, (net, cfg, inf) in [(run, (model, config, info)), *((p, load_run(p, device, checkpoint)) for p in compare)]:
+        taken = [m for m, *_ in learned]
+        method = cfg.model.kind if cfg.model.kind not in taken else f"{cfg.model.kind}-{cfg.name}"
+        missing = [c for c in inf["channels"] if c not in index["channels"]]
+        if missing:
+            raise InputError(f"{data}: lacks the channels {missing} that run {path} uses")
+        views = DatasetGeometry.from_index(index, tuple(inf["view_names"])).view_index
+        learned.append((method, net, views, [index["channels"].index(c) for c in inf["channels"]]))
+    dataset = MeshSARDataset(data, "test", seed=split_seed(split))
+    baselines = {"template": template_mesh(config.model.template_level, info["template_radius_mm"]),
+                 "mean_shape": mean_shape(training_shapes(run, data, split))}
     rows, pairs = [], []
     for i in tqdm(range(len(dataset)), desc="evaluate", disable=not progress):
         sample = dataset[i]
-        with torch.no_grad():
-            verts = model(sample["sar"][None, geometry.view_index].to(device))[-1][1][0].cpu().double().numpy()
+        meshes = {method: net.predict_mesh(sample["sar"][views][:, channels]) for method, net, views, channels in learned}
         gt = (sample["verts"].double().numpy(), sample["faces"].numpy())
-        for method, (pv, pf) in zip(METHODS, ((verts, faces), baseline)):
+        for method, (pv, pf) in {**meshes, **baselines}.items():
             metrics = mesh_metrics(pv, pf, *gt, samples=samples, seed=i)
             rows.append({"sample_id": sample["sample_id"], "source": sample["meta"].get("source", ""),
                          "subset": sample["meta"].get("subset", ""), "method": method, **metrics})
-        if len(pairs) < renders:
-            pairs.append((sample["sample_id"], gt, (verts, faces)))
+        if renders is None or len(pairs) < renders:
+            pairs.append((sample["sample_id"], [("truth", gt), *meshes.items()]))
     out = run / f"eval-{split}"
     summary = summarise(rows)
     write_csv(out / "metrics.csv", rows)
-    write_bytes(out / "summary.md", (f"# {config.name} on {data.name} ({split}, test)\n\n" + markdown(summary)).encode())
+    title = f"# {config.name} on {data.name} ({split}, test; {info['checkpoint']}, epoch {info['epoch']})\n\n"
+    write_bytes(out / "summary.md", (title + markdown(summary)).encode())
     write_json(out / "summary.json", summary)
     if pairs:
-        views = [index["views"][k] for k in geometry.view_index]
-        render_pairs(pairs, views, geometry.fov_mm, out / "renders.png")
+        render_gallery(pairs, [index["views"][k] for k in learned[0][2]], float(index["fov_mm"]), out / "renders.png")
     return summary

@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
 
-from meshsar_builder.geometry.meshing import point_to_surface
+from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface
 from meshsar_builder.geometry.remesh import self_intersecting_faces
 from meshsar_builder.radar.visibility import embree_intersector
 from meshsar_builder.trainer.losses import mesh_edges, sample_surface, uniform_laplacian
@@ -44,6 +45,37 @@ def voxelise(verts: np.ndarray, faces: np.ndarray, lo: np.ndarray, shape: tuple[
     return (np.cumsum(toggles[:, :nz], axis=1) % 2 == 1).reshape(nx, ny, nz)
 
 
+def inside(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of points (N, 3) lie inside a closed mesh (verts (n, 3), faces (m, 3)), by the
+    parity of the Embree hits of a ray from each point along a fixed oblique direction."""
+    # Oblique, so rays from points on a lattice do not run along mesh edges.
+    direction = np.array([0.2719, 0.3821, 0.8831])
+    points = np.asarray(points, dtype=np.float64)
+    _, ray, _ = embree_intersector(verts, faces).intersects_location(
+        points, np.tile(direction / np.linalg.norm(direction), (len(points), 1)), multiple_hits=True)
+    return np.bincount(ray, minlength=len(points)) % 2 == 1
+
+
+def signed_volume(verts: np.ndarray, faces: np.ndarray) -> float:
+    """Volume enclosed by a closed mesh, mm^3: positive when its faces wind outward."""
+    tri = verts[faces]
+    return float(np.einsum("fc,fc->f", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6)
+
+
+def occupancy_surface(occupancy: np.ndarray, lo: np.ndarray, voxel_mm: float,
+                      level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Closed outward mesh of {occupancy > level} by marching cubes: verts (n, 3) mm, faces (m, 3).
+
+    occupancy (X, Y, Z) sampled at voxel centres lo + (i + 0.5) voxel_mm; padded with zeros so the
+    surface closes at the grid's border.
+    """
+    padded = np.pad(occupancy.astype(np.float32), 1)
+    verts, faces, _, _ = marching_cubes(padded, level, spacing=(voxel_mm,) * 3)
+    verts = verts + lo + (0.5 - 1) * voxel_mm  # index 0 of the padded grid is one voxel before lo's centre
+    faces = faces.astype(np.int64)
+    return verts, faces if signed_volume(verts, faces) > 0 else faces[:, ::-1].copy()
+
+
 def overlap(pred: tuple[np.ndarray, np.ndarray], gt: tuple[np.ndarray, np.ndarray], voxel_mm: float = 0.5) -> dict:
     """Dice and Jaccard of two closed meshes, each (verts (n, 3), faces (m, 3)), voxelised on one grid."""
     both = np.concatenate([pred[0], gt[0]])
@@ -64,6 +96,35 @@ def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
 
 
+def barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric coordinates of points (N, 3) in triangles (N, 3, 3) (of the projection on
+    each triangle's plane; degenerate triangles give their first corner)."""
+    ab, ac, ap = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], points - tri[:, 0]
+    d00, d01, d11 = (np.einsum("nc,nc->n", x, y) for x, y in ((ab, ab), (ab, ac), (ac, ac)))
+    d20, d21 = np.einsum("nc,nc->n", ap, ab), np.einsum("nc,nc->n", ap, ac)
+    den = d00 * d11 - d01 * d01
+    safe = np.where(den > 0, den, 1.0)
+    s, t = np.where(den > 0, (d11 * d20 - d01 * d21) / safe, 0.0), np.where(den > 0, (d00 * d21 - d01 * d20) / safe, 0.0)
+    return np.stack([1 - s - t, s, t], axis=1)
+
+
+def interpolated_normals(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normals of a mesh at the closest surface point to each of points (N, 3),
+    interpolated barycentrically from its vertex normals: smooth across edges, and exactly
+    a vertex's normal at that vertex."""
+    _, face = point_to_surface(points, verts, faces)
+    tri = verts[faces[face]]  # (N, 3, 3)
+    closest, _ = closest_on_triangles(points, tri)
+    weights = barycentric(closest, tri)  # (N, 3)
+    normals = np.einsum("nk,nkc->nc", weights, vertex_normals(verts, faces)[faces[face]])
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+
+def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) angle in radians between the vectors a (N, 3) and b (N, 3); atan2 keeps it exact near 0."""
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("nc,nc->n", a, b))
+
+
 def laplacian_coordinates(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(n, 3) uniform Laplacian coordinates x_i - mean of neighbours."""
     edges = torch.from_numpy(mesh_edges(faces))
@@ -77,13 +138,13 @@ def mesh_metrics(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.nd
     verts (n, 3) float mm, faces (m, 3) int, both closed meshes in one frame.
     ASSD: mean of the two directed mean distances of `samples` area-weighted surface
     points; HD: the larger directed maximum; HD95: the larger directed 95th percentile.
-    ANE: mean angle (rad) between each predicted vertex normal and the ground-truth face
-    normal at its closest surface point. ANLD: mean |L_pred(i) - L_gt(nearest gt vertex)|
+    ANE: mean angle (rad) between each predicted vertex normal and the ground-truth normal
+    at its closest surface point, interpolated from the ground truth's vertex normals. ANLD: mean |L_pred(i) - L_gt(nearest gt vertex)|
     over predicted vertices / mean ground-truth edge length. SI: % of predicted faces
     intersecting a non-adjacent face.
     """
-    pv, gv = np.asarray(pred_verts, dtype=np.float64), np.asarray(gt_verts, dtype=np.float64)
-    pf, gf = np.asarray(pred_faces, dtype=np.int64), np.asarray(gt_faces, dtype=np.int64)
+    pv, gv = np.ascontiguousarray(pred_verts, dtype=np.float64), np.ascontiguousarray(gt_verts, dtype=np.float64)
+    pf, gf = np.ascontiguousarray(pred_faces, dtype=np.int64), np.ascontiguousarray(gt_faces, dtype=np.int64)
     generator = torch.Generator().manual_seed(seed)
     directed = []
     for (av, af), (bv, bf) in (((pv, pf), (gv, gf)), ((gv, gf), (pv, pf))):
@@ -94,12 +155,7 @@ def mesh_metrics(pred_verts: np.ndarray, pred_faces: np.ndarray, gt_verts: np.nd
     hd = float(max(d.max() for d in directed))
     hd95 = float(max(np.percentile(d, 95) for d in directed))
 
-    _, nearest_face = point_to_surface(pv, gv, gf)
-    gt_tri = gv[gf[nearest_face]]
-    gt_normal = np.cross(gt_tri[:, 1] - gt_tri[:, 0], gt_tri[:, 2] - gt_tri[:, 0])
-    gt_normal /= np.maximum(np.linalg.norm(gt_normal, axis=1, keepdims=True), 1e-300)
-    cos = np.einsum("nc,nc->n", vertex_normals(pv, pf), gt_normal)
-    ane = float(np.arccos(np.clip(cos, -1, 1)).mean())
+    ane = float(angles(vertex_normals(pv, pf), interpolated_normals(pv, gv, gf)).mean())
 
     nearest_vertex = cKDTree(gv).query(pv)[1]
     gt_edges = mesh_edges(gf)

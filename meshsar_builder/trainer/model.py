@@ -22,12 +22,18 @@ from torch.nn import functional as F
 from meshsar_builder.trainer.losses import adjacent_face_pairs, mesh_edges, neighbour_mean
 
 POOLINGS = ("max", "mean", "std")
+NORMS = ("none", "batch")
+KINDS = ("sar2mesh", "implicit")
 
 
 @dataclass(frozen=True)
 class ModelConfig:
     """Trainer config table [model]."""
 
+    # sar2mesh: the deforming-template network; implicit: the occupancy baseline (trainer.implicit),
+    # which uses encoder_channels, hidden, blocks (MLP layers), the scales of stage_scales, pooling,
+    # input_pool and the implicit_* keys.
+    kind: str = "sar2mesh"
     encoder_channels: tuple[int, ...] = (16, 32, 64, 128)  # UNet width per scale, full resolution first
     hidden: int = 128  # graph-convolution width
     blocks: int = 2  # residual graph-convolution blocks per stage
@@ -38,6 +44,10 @@ class ModelConfig:
     template_radius_mm: float = 0.0  # 0: the mean vertex radius of the training meshes
     pooling: tuple[str, ...] = POOLINGS  # over views; ["max"] is the max-pooling-only ablation
     input_pool: int = 1  # average-pool the images by this factor first (2 halves 128 px: CPU configs)
+    norm: str = "none"  # after each graph convolution: none | batch (the paper's graph conv + BatchNorm + ReLU)
+    implicit_points: int = 2048  # occupancy queries per sample and step: half near the surface, half uniform
+    implicit_noise_mm: float = 5.0  # std of the near-surface queries' offsets
+    implicit_grid: int = 64  # marching-cubes grid per axis over the field of view
 
     def __post_init__(self):
         if not self.encoder_channels or min(self.encoder_channels) < 1:
@@ -57,6 +67,12 @@ class ModelConfig:
             raise ValueError(f"pooling: distinct names from {list(POOLINGS)}, got {list(self.pooling)}")
         if self.input_pool < 1:
             raise ValueError(f"input_pool: must be >= 1, got {self.input_pool}")
+        if self.norm not in NORMS:
+            raise ValueError(f"norm: must be one of {', '.join(NORMS)}, got {self.norm!r}")
+        if self.kind not in KINDS:
+            raise ValueError(f"kind: must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if self.implicit_points < 2 or self.implicit_noise_mm <= 0 or self.implicit_grid < 8:
+            raise ValueError("implicit_points: need >= 2, implicit_noise_mm: > 0, implicit_grid: >= 8")
 
     @property
     def stages(self) -> int:
@@ -167,6 +183,15 @@ def sample_views(features: torch.Tensor, grid: torch.Tensor) -> torch.Tensor:
     return sampled.reshape(b, v, -1, n).transpose(2, 3)
 
 
+def encode(encoder: "UNet", sar: torch.Tensor, input_pool: int) -> list[torch.Tensor]:
+    """Feature maps per scale of every view: sar (B, V, C, H, W) -> [(B*V, c_s, h_s, w_s)]."""
+    images = sar.flatten(0, 1)
+    if input_pool > 1:
+        # Pooling whole pixel blocks keeps the DESIGN pixel grid: normalised coordinates still match.
+        images = F.avg_pool2d(images, input_pool)
+    return encoder(images)
+
+
 def pool_views(per_view: torch.Tensor, modes: tuple[str, ...]) -> torch.Tensor:
     """Pool over the view axis and concatenate: (B, V, n, F) -> (B, n, F * len(modes))."""
     pooled = []
@@ -196,24 +221,39 @@ class GraphConv(nn.Module):
         return self.own(x) + self.neighbours(neighbour_mean(x, edges, x.shape[1]))
 
 
-class GraphResBlock(nn.Module):
-    """Pixel2Mesh residual block: (x + relu(gc2(relu(gc1(x))))) / 2."""
+class VertexBatchNorm(nn.BatchNorm1d):
+    """BatchNorm over every vertex of every mesh of the batch: (B, n, F) -> (B, n, F)."""
 
-    def __init__(self, width: int):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x.reshape(-1, x.shape[-1])).reshape(x.shape)
+
+
+def graph_norm(norm: str, width: int) -> nn.Module:
+    """The normalisation after a graph convolution: none (identity, no parameters) or batch."""
+    return VertexBatchNorm(width) if norm == "batch" else nn.Identity()
+
+
+class GraphResBlock(nn.Module):
+    """Pixel2Mesh residual block: (x + relu(n2(gc2(relu(n1(gc1(x))))))) / 2, n: the chosen normalisation."""
+
+    def __init__(self, width: int, norm: str = "none"):
         super().__init__()
         self.first, self.second = GraphConv(width, width), GraphConv(width, width)
+        self.norm_first, self.norm_second = graph_norm(norm, width), graph_norm(norm, width)
 
     def forward(self, x: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-        return 0.5 * (x + F.relu(self.second(F.relu(self.first(x, edges)), edges)))
+        h = F.relu(self.norm_first(self.first(x, edges)))
+        return 0.5 * (x + F.relu(self.norm_second(self.second(h, edges))))
 
 
 class DeformStage(nn.Module):
     """Input features (B, n, Fin) -> (hidden (B, n, H), displacement (B, n, 3))."""
 
-    def __init__(self, cin: int, hidden: int, blocks: int):
+    def __init__(self, cin: int, hidden: int, blocks: int, norm: str = "none"):
         super().__init__()
         self.inp = GraphConv(cin, hidden)
-        self.blocks = nn.ModuleList(GraphResBlock(hidden) for _ in range(blocks))
+        self.norm = graph_norm(norm, hidden)
+        self.blocks = nn.ModuleList(GraphResBlock(hidden, norm) for _ in range(blocks))
         self.out = GraphConv(hidden, 3)
         # Zero displacement at initialisation: the untrained model returns the template.
         for layer in (self.out.own, self.out.neighbours):
@@ -221,7 +261,7 @@ class DeformStage(nn.Module):
         nn.init.zeros_(self.out.own.bias)
 
     def forward(self, x: torch.Tensor, edges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        h = F.relu(self.inp(x, edges))
+        h = F.relu(self.norm(self.inp(x, edges)))
         for block in self.blocks:
             h = block(h, edges)
         return h, self.out(h, edges)
@@ -253,7 +293,7 @@ class SAR2Mesh(nn.Module):
         pooled = len(config.pooling)
         self.stages = nn.ModuleList(
             DeformStage(3 + (config.hidden if k else 0) + pooled * sum(config.encoder_channels[s] for s in scales),
-                        config.hidden, config.blocks)
+                        config.hidden, config.blocks, config.norm)
             for k, scales in enumerate(config.stage_scales))
 
     def topology(self, stage: int = -1) -> dict[str, torch.Tensor]:
@@ -265,18 +305,20 @@ class SAR2Mesh(nn.Module):
         """The template scaled to template_radius_mm, as the first stage sees it: (n_0, 3) mm."""
         return self.template * self.half_fov
 
+    def predict_mesh(self, sar: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """The final mesh of one sample: sar (V, C, H, W) -> verts (n, 3) float64 mm, faces (m, 3)."""
+        with torch.no_grad():
+            verts = self(sar[None].to(self.template.device))[-1][1][0]
+        return verts.cpu().double().numpy(), self.topology()["faces"].cpu().numpy()
+
     def forward(self, sar: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """sar (B, V, C, H, W) -> per stage (input vertices, output vertices), each (B, n_k, 3) mm.
 
         The input of stage k is the output of stage k-1 (unpooled): the Laplacian loss
         compares against it.
         """
-        b, v = sar.shape[:2]
-        images = sar.flatten(0, 1)
-        if self.config.input_pool > 1:
-            # Pooling whole pixel blocks keeps the DESIGN pixel grid: normalised coordinates still match.
-            images = F.avg_pool2d(images, self.config.input_pool)
-        features = self.encoder(images)
+        b = sar.shape[0]
+        features = encode(self.encoder, sar, self.config.input_pool)
         pos = self.template.expand(b, -1, -1)
         hidden = None
         meshes = []

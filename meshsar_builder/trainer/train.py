@@ -1,27 +1,35 @@
 """The reference SAR2Mesh trainer: `meshsar train CONFIG --data OUT [--split seed-0] [--out RUN]`.
 
-A trainer config (manifests/train/*.toml) has top-level `name` and `seed` and the
-tables [data], [model] (model.ModelConfig), [loss], [radar_loss], [optim] and
-[run]; unknown keys and wrong types are errors naming the file and the key.
+The config (manifests/train/*.toml) is described in trainer.config.
 
 A run folder holds config.toml (the config as given), run.json (data, split,
-dataset identity), log.csv (one row per epoch) and checkpoint.pt (tensors and
-plain data only: loads with torch.load(weights_only=True)). Rerunning the same
-command on the same folder resumes from its checkpoint. Under torchrun (WORLD_SIZE
-> 1) the model is wrapped in DistributedDataParallel and each rank reads its own
-shards; rank 0 writes the run folder.
+dataset identity, the validation ids), log.csv (one row per epoch: every loss
+term, also per stage, and the validation metrics of the epochs that had them),
+checkpoint.pt (the last epoch) and best.pt (the best validation Dice so far),
+both tensors and plain data only: they load with torch.load(weights_only=True).
+With `tensorboard` installed the log's numbers also go to tb/ as event files.
+Rerunning the same command on the same folder resumes from its checkpoint.
+
+Validation: a seeded part of the train split (val_fraction), grouped by subject
+like the splits themselves (dataset.splits.make_split), never the test split.
+
+Under torchrun (WORLD_SIZE > 1) the model is wrapped in DistributedDataParallel.
+Each epoch's sample order (seeded by (seed, epoch)) is dealt sample by sample over
+the ranks, so every training sample is seen exactly once per epoch whatever the
+shard sizes; steps where a rank has fewer samples weight its loss by its share of
+the global batch (0 for a rank with none), so the averaged gradient is that of the
+global batch's mean loss. Rank 0 validates and writes the run folder.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
-import dataclasses
 import io
 import math
 import os
-import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,168 +37,26 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from meshsar_builder.dataset.readers import MeshSARDataset, MeshSARIterable, collate_meshes
+from meshsar_builder.dataset.readers import MeshSARDataset, collate_meshes, split_ids
 from meshsar_builder.dataset.shards import read_index
-from meshsar_builder.pipeline.errors import InputError, RecipeError
+from meshsar_builder.dataset.splits import make_split
+from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import write_bytes, write_json
-from meshsar_builder.pipeline.recipe import build, parse_toml, read_text
-from meshsar_builder.pipeline.seeding import seed_sequence
+from meshsar_builder.pipeline.seeding import item_rng, seed_sequence
 from meshsar_builder.radar.params import RadarParams
 from meshsar_builder.trainer import losses as L
-from meshsar_builder.trainer.model import ModelConfig, SAR2Mesh
+from meshsar_builder.trainer.config import TrainConfig, load_config, parse_config, split_seed
+from meshsar_builder.trainer.implicit import ImplicitSAR, occupancy_loss
+from meshsar_builder.trainer.metrics import mesh_metrics
+from meshsar_builder.trainer.model import SAR2Mesh
 
 CHECKPOINT = "checkpoint.pt"
+BEST = "best.pt"
 LOG = "log.csv"
 LOSS_TERMS = ("chamfer", "laplacian", "edge", "normal")
-LOG_COLUMNS = ("epoch", "steps", "total", *LOSS_TERMS, "radar", "radar_l1", "radar_weight", "lr", "seconds")
-RADAR_BALANCES = ("gradient", "none")
-LR_SCHEDULES = ("constant", "cosine")
-
-
-@dataclass(frozen=True)
-class DataConfig:
-    """[data]: what the model sees."""
-
-    channels: tuple[str, ...] = ("intensity", "depth")  # sar channels, by name
-    views: tuple[str, ...] = ()  # view names to use; empty: all (["anterior"]: the one-view ablation)
-    batch_size: int = 1
-    workers: int = 0  # DataLoader worker processes per rank
-
-    def __post_init__(self):
-        if not self.channels:
-            raise ValueError("channels: need at least one channel")
-        if self.batch_size < 1 or self.workers < 0:
-            raise ValueError(f"batch_size/workers: need >= 1 / >= 0, got {self.batch_size}, {self.workers}")
-
-
-@dataclass(frozen=True)
-class LossConfig:
-    """[loss]: weights of Chamfer, Laplacian, edge length, normal consistency (summed over stages)."""
-
-    weights: tuple[float, float, float, float] = (0.3, 0.05, 0.46, 0.16)
-    chamfer_points: int = 4000  # points sampled on the ground-truth surface per sample and step
-
-    def __post_init__(self):
-        if min(self.weights) < 0 or self.chamfer_points < 1:
-            raise ValueError(f"weights/chamfer_points: need >= 0 / >= 1, got {list(self.weights)}, {self.chamfer_points}")
-
-
-@dataclass(frozen=True)
-class RadarLossConfig:
-    """[radar_loss]: L1 between the prediction's differentiable echo and the stored echo."""
-
-    weight: float = 0.1  # 0: the no-radar-loss ablation
-    warmup_epochs: int = 20  # the weight is 0 before this epoch
-    ramp_epochs: int = 0  # then rises linearly to `weight` over this many epochs (0: at once)
-    # gradient: the radar term's gradient on the compared mesh is rescaled, per step, to `weight`
-    # times the norm of the geometric terms' gradient there; its logged value is rescaled alike
-    # (radar_l1 logs the plain relative L1). The echo's phase makes the plain term's vertex
-    # gradients ~200x the geometric ones (measured on the demo set: 2e-2 vs 8e-5 per vertex at
-    # weight 0.1), so without this any useful weight swamps Chamfer. none: weight x relative L1.
-    balance: str = "gradient"
-    # profile: |IFFT over frequency|; raw: the complex signal (paper). Measured on a 2,562-vertex
-    # ellipsoid against its Embree echo: raw jumps 0.65 -> 1.95 within 1 mm (phase wraps), profile
-    # varies smoothly with its minimum within 2 mm and a basin of about -8..+4 mm.
-    mode: str = "profile"
-    beta: float = 10.0  # steepness of the soft visibility
-    antennas: int = 0  # antennas per view drawn each step (0: every antenna of the echo grid)
-    stage: int = -1  # whose mesh is compared (Python index over stages)
-
-    def __post_init__(self):
-        if self.mode not in L.RADAR_MODES:
-            raise ValueError(f"mode: must be one of {', '.join(L.RADAR_MODES)}, got {self.mode!r}")
-        if self.balance not in RADAR_BALANCES:
-            raise ValueError(f"balance: must be one of {', '.join(RADAR_BALANCES)}, got {self.balance!r}")
-        if self.weight < 0 or self.warmup_epochs < 0 or self.ramp_epochs < 0 or self.antennas < 0 or self.beta <= 0:
-            raise ValueError("weight, warmup_epochs, ramp_epochs, antennas: must be >= 0; beta: > 0")
-
-
-@dataclass(frozen=True)
-class OptimConfig:
-    """[optim]: Adam."""
-
-    lr: float = 1e-3
-    epochs: int = 500
-    schedule: str = "constant"  # constant | cosine (per epoch, from lr down to lr * final_lr)
-    final_lr: float = 0.0  # cosine: the last epoch's lr as a fraction of lr
-
-    def __post_init__(self):
-        if not self.lr > 0 or self.epochs < 1:
-            raise ValueError(f"lr/epochs: need > 0 / >= 1, got {self.lr}, {self.epochs}")
-        if self.schedule not in LR_SCHEDULES:
-            raise ValueError(f"schedule: must be one of {', '.join(LR_SCHEDULES)}, got {self.schedule!r}")
-        if not 0 <= self.final_lr <= 1:
-            raise ValueError(f"final_lr: need 0..1, got {self.final_lr}")
-
-
-@dataclass(frozen=True)
-class RunConfig:
-    """[run]: where and how."""
-
-    device: str = "auto"  # auto (CUDA when available) | cpu | cuda
-    amp: bool = False  # mixed precision (torch.autocast: float16 on CUDA, bfloat16 on CPU)
-    checkpoint_every: int = 1  # epochs
-
-    def __post_init__(self):
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ValueError(f"device: must be auto, cpu or cuda, got {self.device!r}")
-        if self.checkpoint_every < 1:
-            raise ValueError(f"checkpoint_every: must be >= 1, got {self.checkpoint_every}")
-
-
-TABLES = {"data": DataConfig, "model": ModelConfig, "loss": LossConfig, "radar_loss": RadarLossConfig,
-          "optim": OptimConfig, "run": RunConfig}
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    name: str
-    seed: int = 0
-    data: DataConfig = field(default_factory=DataConfig)
-    model: ModelConfig = field(default_factory=ModelConfig)
-    loss: LossConfig = field(default_factory=LossConfig)
-    radar_loss: RadarLossConfig = field(default_factory=RadarLossConfig)
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    run: RunConfig = field(default_factory=RunConfig)
-    text: str = ""  # the TOML it came from (kept in run folders and checkpoints)
-
-    def as_dict(self) -> dict:
-        """Plain data (lists, not tuples), for JSON and checkpoints."""
-        plain = dataclasses.asdict(self)
-        del plain["text"]
-        return _plain(plain)
-
-
-def _plain(value):
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value
-
-
-def parse_config(text: str, file: str = "<config>") -> TrainConfig:
-    """Parse and validate trainer-config TOML; RecipeError naming `file` and the key."""
-    data = parse_toml(text, file, {"name", "seed", *TABLES})
-    if "name" not in data:
-        raise RecipeError(f"{file}: missing required key 'name'")
-    top = build(TrainConfig, {k: data[k] for k in ("name", "seed") if k in data}, file)
-    tables = {k: build(cls, data.get(k, {}), f"{file}: [{k}]") for k, cls in TABLES.items()}
-    return dataclasses.replace(top, **tables, text=text)
-
-
-def load_config(path: str | os.PathLike) -> TrainConfig:
-    return parse_config(read_text(path, "trainer config"), str(path))
-
-
-def split_seed(split: str) -> int:
-    """'seed-7' -> 7 (the split file OUT/splits/seed-7.json)."""
-    match = re.fullmatch(r"seed-(\d+)", split)
-    if not match:
-        raise InputError(f"--split: expected seed-<N>, got {split!r}")
-    return int(match.group(1))
-
-
+SUMMED = (*LOSS_TERMS, "radar", "radar_l1", "total")  # per-sample means of a batch, logged per epoch
+VAL_METRICS = ("dice", "jaccard", "assd_mm", "hd_mm", "hd95_mm", "ane_rad", "anld", "si_pct")
+INT_COLUMNS = ("epoch", "steps", "samples")
 # ---------------------------------------------------------------- dataset geometry
 
 
@@ -233,50 +99,84 @@ class DatasetGeometry:
         )
 
 
-def template_radius(root: Path, split_seed_: int) -> float:
-    """Mean distance of ground-truth vertices from the heart-frame origin over the train split, mm."""
-    dataset = MeshSARDataset(root, "train", seed=split_seed_)
+def validation_split(root: Path, index: dict, split_seed_: int, fraction: float) -> tuple[list[str], list[str]]:
+    """(train ids, validation ids) of the train split of seed-<split_seed_>, in dataset order.
+
+    The validation part is `fraction` of the train split, grouped by subject and seeded like
+    the splits (make_split on the train samples only, seeded from the split's seed).
+    """
+    ids = split_ids(root, index, "train", split_seed_)
+    if fraction == 0:
+        return ids, []
+    chosen = set(ids)
+    sub = {"samples": {sid: index["samples"][sid] for sid in ids},
+           "shards": [{"sample_ids": [s for s in shard["sample_ids"] if s in chosen]} for shard in index["shards"]]}
+    seed = int(seed_sequence(split_seed_, "trainer", "validation").generate_state(1)[0])
+    split = make_split(sub, seed, {"train": 1 - fraction, "val": fraction})
+    return split["train"], split["val"]
+
+
+class Subset(torch.utils.data.Dataset):
+    """The samples of a MeshSARDataset with the given ids, in that order."""
+
+    def __init__(self, dataset: MeshSARDataset, ids: list[str]):
+        position = {sid: k for k, sid in enumerate(dataset.ids)}
+        self.dataset, self.ids, self.rows = dataset, list(ids), [position[sid] for sid in ids]
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, i: int) -> dict:
+        return self.dataset[self.rows[i]]
+
+
+def template_radius(dataset: torch.utils.data.Dataset) -> float:
+    """Mean distance of ground-truth vertices from the heart-frame origin over a dataset's samples, mm."""
     return float(np.mean([dataset[i]["verts"].norm(dim=1).mean().item() for i in range(len(dataset))]))
 
 
 # ---------------------------------------------------------------- losses of a batch
 
 
-def step_generator(seed: int, epoch: int, step: int, rank: int) -> torch.Generator:
-    """The CPU generator of one training step: depends only on (seed, epoch, step, rank), so resumed runs repeat."""
-    state = seed_sequence(seed, "train", f"{epoch}/{step}/{rank}").generate_state(1)[0]
-    return torch.Generator().manual_seed(int(state))
+def sample_generators(seed: int, epoch: int, sample_ids: list[str]) -> list[torch.Generator]:
+    """CPU generators of a batch's samples in an epoch: each depends only on (seed, epoch, sample id), so
+    resumed runs repeat and a sample draws the same numbers whichever rank or batch it falls in."""
+    return [torch.Generator().manual_seed(int(seed_sequence(seed, "train", f"{epoch}/{sid}").generate_state(1)[0]))
+            for sid in sample_ids]
 
 
 def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mesh, batch: dict,
                  geometry: DatasetGeometry, config: TrainConfig, radar_weight: float,
-                 generator: torch.Generator) -> dict[str, torch.Tensor]:
-    """Weighted loss terms of one batch and their sum "total" (scalars, float32).
+                 generators: list[torch.Generator]) -> dict[str, torch.Tensor]:
+    """Weighted loss terms of one batch and their sum "total" (scalars, float32; means over the batch).
 
     meshes: the model's per-stage (input, output) vertices (B, n_k, 3) mm. Geometric
-    terms are summed over stages, in units of fov/2; the radar term uses one stage.
+    terms are summed over stages, in units of fov/2 ("<term>_s<k>": stage k's share);
+    the radar term uses one stage. generators: one CPU generator per sample (sample_generators):
+    its Chamfer target points, and for the first the radar loss's antennas.
     """
     unit = geometry.fov_mm / 2
     device = meshes[0][1].device
-    targets = [L.sample_surface(v.double(), f, config.loss.chamfer_points, generator).float().to(device) / unit
-               for v, f in zip(batch["verts"], batch["faces"])]  # B x (P, 3)
-    terms = {name: torch.zeros((), device=device) for name in (*LOSS_TERMS, "radar", "radar_l1")}
+    targets = [L.sample_surface(v.double(), f, config.loss.chamfer_points, g).float().to(device) / unit
+               for v, f, g in zip(batch["verts"], batch["faces"], generators)]  # B x (P, 3)
+    terms = {name: torch.zeros((), device=device) for name in ("radar", "radar_l1")}
     for k, (before, after) in enumerate(meshes):
         topo = model.topology(k)
         before, after = before.float().detach() / unit, after.float() / unit  # (B, n_k, 3)
-        terms["chamfer"] = terms["chamfer"] + torch.stack([L.chamfer(p, t) for p, t in zip(after, targets)]).mean()
-        terms["laplacian"] = terms["laplacian"] + L.laplacian_loss(after, before, topo["edges"])
-        terms["edge"] = terms["edge"] + L.edge_loss(after, topo["edges"])
-        terms["normal"] = terms["normal"] + L.normal_consistency(after, topo["faces"], topo["face_pairs"])
-    for name, weight in zip(LOSS_TERMS, config.loss.weights):
-        terms[name] = weight * terms[name]
+        stage = (torch.stack([L.chamfer(p, t) for p, t in zip(after, targets)]).mean(),
+                 L.laplacian_loss(after, before, topo["edges"]), L.edge_loss(after, topo["edges"]),
+                 L.normal_consistency(after, topo["faces"], topo["face_pairs"]))
+        for name, weight, value in zip(LOSS_TERMS, config.loss.weights, stage):
+            terms[f"{name}_s{k}"] = weight * value
+    for name in LOSS_TERMS:
+        terms[name] = sum(terms[f"{name}_s{k}"] for k in range(len(meshes)))
     if radar_weight > 0:
         rc = config.radar_loss
         echo = batch["echo"][:, geometry.view_index]
         echo = echo.reshape(*echo.shape[:2], -1, echo.shape[-1])  # (B, V, M, Ef), rows as positions_mm
         positions = geometry.positions
         if 0 < rc.antennas < positions.shape[1]:
-            pick = torch.randperm(positions.shape[1], generator=generator)[: rc.antennas].numpy()
+            pick = torch.randperm(positions.shape[1], generator=generators[0])[: rc.antennas].numpy()
             positions, echo = positions[:, pick], echo[:, :, pick]
         verts = meshes[rc.stage][1]
         relative = L.radar_loss(verts.float(), model.topology(rc.stage)["faces"], echo.to(device), positions,
@@ -344,24 +244,37 @@ def pick_device(name: str, local_rank: int) -> torch.device:
     return torch.device("cpu")
 
 
-def all_reduce(values: torch.Tensor, op=None) -> torch.Tensor:
-    """Sum (or `op`) of a CPU tensor over ranks; itself when not distributed."""
+def all_reduce(values: torch.Tensor) -> torch.Tensor:
+    """Sum of a CPU tensor over ranks; itself when not distributed."""
     if torch.distributed.is_initialized():
         on = values.cuda() if torch.distributed.get_backend() == "nccl" else values.clone()
-        torch.distributed.all_reduce(on, op or torch.distributed.ReduceOp.SUM)
+        torch.distributed.all_reduce(on)
         return on.cpu()
     return values
 
 
-def steps_this_epoch(dataset: MeshSARIterable, batch_size: int, workers: int, rank: int, world: int) -> int:
-    """Batches every rank can run this epoch: the fewest over ranks, so DDP's collectives stay paired.
+def epoch_batches(n: int, batch_size: int, world: int, rank: int, seed: int, epoch: int) -> list[tuple[list[int], float]]:
+    """This rank's batches of an epoch over n samples: per step (sample positions, loss weight).
 
-    Each DataLoader worker batches its own shards, so a rank's batches are the sum over its workers.
+    The epoch's permutation (seeded by (seed, epoch): every rank agrees) is dealt one sample
+    at a time over the ranks, so the ranks' samples cover each sample exactly once. Every
+    rank runs as many steps as rank 0 (which has the most), so DDP's collectives pair up; a
+    step's weight is (this rank's samples x world / the step's samples over all ranks), which
+    makes DDP's gradient mean the mean over the step's global batch. A rank out of samples
+    repeats its first with weight 0.
     """
-    consumers = max(workers, 1)
-    mine = sum(math.ceil(sum(len(rows) for _, rows in dataset.assignment(rank * consumers + w, world * consumers))
-                         / batch_size) for w in range(consumers))
-    return int(all_reduce(torch.tensor([mine]), torch.distributed.ReduceOp.MIN if world > 1 else None)[0])
+    if n < world:
+        raise InputError(f"{n} training sample(s) for {world} ranks: every rank needs at least one")
+    order = item_rng(seed, "trainer", f"epoch-{epoch}").permutation(n).tolist()
+    dealt = [order[r::world] for r in range(world)]
+    steps = math.ceil(len(dealt[0]) / batch_size)
+    batches = []
+    for step in range(steps):
+        chunks = [d[step * batch_size : (step + 1) * batch_size] for d in dealt]
+        total = sum(len(c) for c in chunks)
+        mine = chunks[rank]
+        batches.append((mine, len(mine) * world / total) if mine else (dealt[rank][:1], 0.0))
+    return batches
 
 
 # ---------------------------------------------------------------- checkpoints and logs
@@ -378,39 +291,102 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     return torch.load(path, map_location=device, weights_only=True)
 
 
-def build_model(config: TrainConfig, info: dict) -> SAR2Mesh:
-    """The model a checkpoint's `info` describes (frames, fov_mm, channels, template_radius_mm)."""
+def build_model(config: TrainConfig, info: dict) -> SAR2Mesh | ImplicitSAR:
+    """The model a checkpoint's `info` describes (frames, fov_mm, channels, template_radius_mm), of [model] kind."""
+    if config.model.kind == "implicit":
+        return ImplicitSAR(config.model, np.asarray(info["frames"]), info["fov_mm"], len(info["channels"]))
     return SAR2Mesh(config.model, np.asarray(info["frames"]), info["fov_mm"], len(info["channels"]),
                     info["template_radius_mm"])
 
 
-def load_run(run: str | os.PathLike, device: torch.device | str = "cpu") -> tuple[SAR2Mesh, TrainConfig, dict]:
-    """(model in eval mode, config, checkpoint info) of a run folder."""
+def loss_names(config: TrainConfig) -> list[str]:
+    """The loss terms step_terms returns for a config's model kind (log.csv's loss columns)."""
+    if config.model.kind == "implicit":
+        return ["occupancy", "total"]
+    return [*SUMMED, *(f"{n}_s{k}" for k in range(config.model.stages) for n in LOSS_TERMS)]
+
+
+def step_terms(net: torch.nn.Module, model: SAR2Mesh | ImplicitSAR, batch: dict, sar: torch.Tensor,
+               geometry: DatasetGeometry, config: TrainConfig, radar_weight: float,
+               generators: list[torch.Generator], autocast=contextlib.nullcontext) -> dict[str, torch.Tensor]:
+    """The loss terms (loss_names) of one batch: sar (B, V, C, H, W) on the model's device; net: the model or
+    its DDP wrapper; autocast: a context-manager factory the forward runs under."""
+    if isinstance(model, ImplicitSAR):
+        with autocast():
+            return occupancy_loss(net, model, batch, sar, generators)
+    with autocast():
+        meshes = net(sar)
+    return batch_losses(meshes, model, batch, geometry, config, radar_weight, generators)
+
+
+def load_run(run: str | os.PathLike, device: torch.device | str = "cpu",
+             checkpoint: str = "best") -> tuple[SAR2Mesh, TrainConfig, dict]:
+    """(model in eval mode, config, checkpoint info) of a run folder.
+
+    checkpoint: "best" (best.pt, the best validation Dice; the last epoch's checkpoint.pt
+    when the run had no validation) or "last" (checkpoint.pt).
+    """
     run = Path(run)
+    if checkpoint not in ("best", "last"):
+        raise InputError(f"checkpoint: must be best or last, got {checkpoint!r}")
     if not (run / CHECKPOINT).exists():
         raise InputError(f"{run}: no {CHECKPOINT}; train first with `meshsar train CONFIG --data OUT --out {run}`")
-    state = load_checkpoint(run / CHECKPOINT, device)
+    path = run / BEST if checkpoint == "best" and (run / BEST).exists() else run / CHECKPOINT
+    state = load_checkpoint(path, device)
     config = parse_config(state["config_text"], str(run / "config.toml"))
     model = build_model(config, state["info"]).to(device)
     model.load_state_dict(state["model"])
-    return model.eval(), config, state["info"]
+    return model.eval(), config, {**state["info"], "checkpoint": path.name, "epoch": state["epoch"]}
 
 
-def write_log(path: Path, rows: list[dict]) -> None:
+def log_columns(config: TrainConfig) -> list[str]:
+    """log.csv's columns for a config."""
+    return [*INT_COLUMNS, *loss_names(config), "val_total", *(f"val_{m}" for m in VAL_METRICS),
+            "radar_weight", "lr", "seconds"]
+
+
+def write_log(path: Path, rows: list[dict], columns: list[str]) -> None:
+    """Rows as CSV; None (no validation that epoch) is an empty cell."""
     text = io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=LOG_COLUMNS)
+    writer = csv.DictWriter(text, fieldnames=columns)
     writer.writeheader()
     writer.writerows(rows)
     write_bytes(path, text.getvalue().encode("utf-8"))
 
 
 def read_log(path: Path) -> list[dict]:
+    """log.csv rows; empty cells (and columns an older log lacks) read as None."""
     if not path.exists():
         return []
     with open(path, newline="", encoding="utf-8") as f:
-        # Columns a log written by an older version lacks read as 0.
-        return [{k: (int(v) if k in ("epoch", "steps") else float(v or 0)) for k, v in row.items()}
+        return [{k: None if v in ("", None) else int(v) if k in INT_COLUMNS else float(v) for k, v in row.items()}
                 for row in csv.DictReader(f, restval="")]
+
+
+def tensorboard_writer(run: Path):
+    """A SummaryWriter on run/tb when `tensorboard` is installed (the optional extra), else None."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(str(run / "tb"))
+
+
+def validate(model: SAR2Mesh | ImplicitSAR, dataset: torch.utils.data.Dataset, geometry: DatasetGeometry,
+             config: TrainConfig, device: torch.device) -> dict[str, float]:
+    """Mean loss ("total", radar off) and mean metrics (VAL_METRICS) of the predicted meshes over a dataset."""
+    model.eval()
+    totals, rows = [], []
+    with torch.no_grad():
+        for i in range(len(dataset)):
+            batch = collate_meshes([dataset[i]])
+            sar = batch["sar"][:, geometry.view_index].to(device)
+            totals.append(step_terms(model, model, batch, sar, geometry, config, 0.0,
+                                     sample_generators(config.seed, -1, batch["sample_id"]))["total"].item())
+            rows.append(mesh_metrics(*model.predict_mesh(sar[0]), batch["verts"][0].double().numpy(),
+                                     batch["faces"][0].numpy(), samples=config.run.val_samples, seed=i))
+    model.train()
+    return {"total": float(np.mean(totals)), **{m: float(np.mean([r[m] for r in rows])) for m in VAL_METRICS}}
 
 
 # ---------------------------------------------------------------- training
@@ -438,6 +414,9 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     device = pick_device(config.run.device, local_rank)
     index = read_index(data)
     geometry = DatasetGeometry.from_index(index, config.data.views)
+    train_ids, val_ids = validation_split(data, index, seed_, config.data.val_fraction)
+    every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels))
+    train_set, val_set = Subset(every, train_ids), Subset(every, val_ids)
     state = load_checkpoint(run / CHECKPOINT, device) if (run / CHECKPOINT).exists() else None
     if state is not None and state["config_text"] != config.text:
         raise InputError(f"{run}: holds a run of a different config; give another --out or remove it")
@@ -445,70 +424,89 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         "view_names": geometry.view_names, "frames": geometry.frames.tolist(), "fov_mm": geometry.fov_mm,
         "channels": list(config.data.channels), "data": str(data), "split": split,
         "recipe": index["recipe"], "recipe_sha256": index["recipe_sha256"],
-        "template_radius_mm": config.model.template_radius_mm or template_radius(data, seed_),
+        "template_radius_mm": config.model.template_radius_mm or template_radius(train_set),
     }
     torch.manual_seed(config.seed)
     model = build_model(config, info).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.optim.lr)
     amp = config.run.amp
     scaler = torch.amp.GradScaler(device.type, enabled=amp and device.type == "cuda")
-    start = 0
+    start, best_dice = 0, -1.0
     if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         scaler.load_state_dict(state["scaler"])
-        start = state["epoch"]
+        start, best_dice = state["epoch"], state.get("best_dice", -1.0)
     log = [row for row in read_log(run / LOG) if row["epoch"] < start]
+    columns = log_columns(config)
+    board = tensorboard_writer(run) if rank == 0 else None
     if rank == 0:
         write_bytes(run / "config.toml", config.text.encode("utf-8"))
-        write_json(run / "run.json", {**info, "config": config.as_dict(), "world_size": world})
+        write_json(run / "run.json", {**info, "config": config.as_dict(), "world_size": world,
+                                      "train_ids": train_ids, "val_ids": val_ids})
     # Encoder scales no stage samples leave parameters without gradients, which DDP must be told.
     unused = set(range(len(config.model.encoder_channels))) - {s for st in config.model.stage_scales for s in st}
     net = torch.nn.parallel.DistributedDataParallel(
         model, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=bool(unused),
     ) if world > 1 else model
-    dataset = MeshSARIterable(data, "train", seed=seed_, shuffle=True, channels=list(config.data.channels),
-                              rank=rank, world_size=world)
-    loader = DataLoader(dataset, batch_size=config.data.batch_size, collate_fn=collate_meshes,
-                        num_workers=config.data.workers)
     autocast_dtype = torch.float16 if device.type == "cuda" else torch.bfloat16
+
+    def autocast():
+        return torch.autocast(device.type, dtype=autocast_dtype, enabled=amp)
+
     bar = tqdm(total=config.optim.epochs, initial=start, desc=f"train {config.name}", unit="epoch",
                disable=not progress or rank != 0)
     for epoch in range(start, config.optim.epochs):
         began = time.perf_counter()
-        dataset.set_epoch(epoch)
-        steps = steps_this_epoch(dataset, config.data.batch_size, config.data.workers, rank, world)
+        batches = epoch_batches(len(train_set), config.data.batch_size, world, rank, config.seed, epoch)
+        loader = DataLoader(train_set, batch_sampler=[b for b, _ in batches], collate_fn=collate_meshes,
+                            num_workers=config.data.workers)
         radar_weight = radar_weight_at(config, epoch)
         lr = lr_at(config, epoch)
         for group in optimizer.param_groups:
             group["lr"] = lr
-        sums = torch.zeros(len(LOSS_TERMS) + 3, dtype=torch.float64)  # terms, radar, radar_l1, total
+        names = loss_names(config)
+        sums = torch.zeros(len(names) + 1, dtype=torch.float64)  # per-sample sums of the terms, then samples
         model.train()
-        for step, batch in zip(range(steps), loader):
+        for batch, (_, weight) in zip(loader, batches):
             sar = batch["sar"][:, geometry.view_index].to(device)  # (B, V, C, H, W)
-            with torch.autocast(device.type, dtype=autocast_dtype, enabled=amp):
-                meshes = net(sar)
-            terms = batch_losses(meshes, model, batch, geometry, config, radar_weight,
-                                 step_generator(config.seed, epoch, step, rank))
+            terms = step_terms(net, model, batch, sar, geometry, config, radar_weight,
+                               sample_generators(config.seed, epoch, batch["sample_id"]), autocast)
             optimizer.zero_grad(set_to_none=True)
-            scaler.scale(terms["total"]).backward()
+            scaler.scale(terms["total"] * weight).backward()
             scaler.step(optimizer)
             scaler.update()
-            sums += torch.tensor([terms[k].item() for k in (*LOSS_TERMS, "radar", "radar_l1", "total")],
-                                 dtype=torch.float64)
-        means = all_reduce(sums) / max(1, steps * world)
-        row = {"epoch": epoch, "steps": steps, **dict(zip((*LOSS_TERMS, "radar", "radar_l1", "total"), means.tolist())),
-               "radar_weight": radar_weight, "lr": lr, "seconds": time.perf_counter() - began}
-        log.append(row)
-        bar.set_postfix(loss=f"{row['total']:.4g}", chamfer=f"{row['chamfer']:.3g}")
-        bar.update()
+            if weight > 0:
+                size = len(batch["verts"])
+                sums += torch.tensor([size * terms[k].item() for k in names] + [size], dtype=torch.float64)
+        sums = all_reduce(sums)
+        row = {"epoch": epoch, "steps": len(batches), "samples": int(sums[-1]),
+               **dict(zip(names, (sums[:-1] / sums[-1]).tolist())), "radar_weight": radar_weight, "lr": lr}
         done = epoch + 1
-        if rank == 0:
-            write_log(run / LOG, log)
-        if rank == 0 and (done % config.run.checkpoint_every == 0 or done == config.optim.epochs):
+        validated = rank == 0 and bool(val_ids) and (done % config.run.val_every == 0 or done == config.optim.epochs)
+        val = validate(model, val_set, geometry, config, device) if validated else {}
+        row.update({f"val_{k}": val.get(k) for k in ("total", *VAL_METRICS)}, seconds=time.perf_counter() - began)
+        log.append(row)
+        bar.set_postfix(loss=f"{row['total']:.4g}", **({"val_dice": f"{val['dice']:.3f}"} if val else {}))
+        bar.update()
+        if rank != 0:
+            continue
+        write_log(run / LOG, log, columns)
+        if board is not None:
+            for key, value in row.items():
+                if key != "epoch" and value is not None:
+                    board.add_scalar(key, value, epoch)
+            board.flush()
+        if val and val["dice"] > best_dice:
+            best_dice = val["dice"]
+            save_checkpoint(run / BEST, {"epoch": done, "model": model.state_dict(), "config_text": config.text,
+                                         "info": info, "val": val})
+        if done % config.run.checkpoint_every == 0 or done == config.optim.epochs:
             save_checkpoint(run / CHECKPOINT, {
                 "epoch": done, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                "scaler": scaler.state_dict(), "config_text": config.text, "info": info,
+                "scaler": scaler.state_dict(), "config_text": config.text, "info": info, "best_dice": best_dice,
             })
     bar.close()
+    if board is not None:
+        board.close()
     return TrainResult(run=run, model=model, log=log)

@@ -1,0 +1,171 @@
+"""Trainer configs (manifests/train/*.toml): `meshsar train CONFIG ...`.
+
+A config has top-level `name` and `seed` and the tables [data], [model]
+(model.ModelConfig), [loss], [radar_loss], [optim] and [run]; unknown keys and
+wrong types are errors naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+from dataclasses import dataclass, field
+
+from meshsar_builder.pipeline.errors import InputError, RecipeError
+from meshsar_builder.pipeline.recipe import build, parse_toml, read_text
+from meshsar_builder.trainer import losses as L
+from meshsar_builder.trainer.model import ModelConfig
+
+RADAR_BALANCES = ("gradient", "none")
+LR_SCHEDULES = ("constant", "cosine")
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """[data]: what the model sees."""
+
+    channels: tuple[str, ...] = ("intensity", "depth")  # sar channels, by name
+    views: tuple[str, ...] = ()  # view names to use; empty: all (["anterior"]: the one-view ablation)
+    batch_size: int = 1
+    workers: int = 0  # DataLoader worker processes per rank
+    val_fraction: float = 0.1  # of the train split, held out for validation (grouped by subject); 0: none
+
+    def __post_init__(self):
+        if not self.channels:
+            raise ValueError("channels: need at least one channel")
+        if self.batch_size < 1 or self.workers < 0:
+            raise ValueError(f"batch_size/workers: need >= 1 / >= 0, got {self.batch_size}, {self.workers}")
+        if not 0 <= self.val_fraction < 1:
+            raise ValueError(f"val_fraction: need 0 <= val_fraction < 1, got {self.val_fraction}")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """[loss]: weights of Chamfer, Laplacian, edge length, normal consistency (summed over stages)."""
+
+    weights: tuple[float, float, float, float] = (0.3, 0.05, 0.46, 0.16)
+    chamfer_points: int = 4000  # points sampled on the ground-truth surface per sample and step
+
+    def __post_init__(self):
+        if min(self.weights) < 0 or self.chamfer_points < 1:
+            raise ValueError(f"weights/chamfer_points: need >= 0 / >= 1, got {list(self.weights)}, {self.chamfer_points}")
+
+
+@dataclass(frozen=True)
+class RadarLossConfig:
+    """[radar_loss]: L1 between the prediction's differentiable echo and the stored echo."""
+
+    weight: float = 0.1  # 0: the no-radar-loss ablation
+    warmup_epochs: int = 20  # the weight is 0 before this epoch
+    ramp_epochs: int = 0  # then rises linearly to `weight` over this many epochs (0: at once)
+    # gradient: the radar term's gradient on the compared mesh is rescaled, per step, to `weight`
+    # times the norm of the geometric terms' gradient there; its logged value is rescaled alike
+    # (radar_l1 logs the plain relative L1). The echo's phase makes the plain term's vertex
+    # gradients ~200x the geometric ones (measured on the demo set: 2e-2 vs 8e-5 per vertex at
+    # weight 0.1), so without this any useful weight swamps Chamfer. none: weight x relative L1.
+    balance: str = "gradient"
+    # profile: |IFFT over frequency|; raw: the complex signal (paper). Measured on a 2,562-vertex
+    # ellipsoid against its Embree echo: raw jumps 0.65 -> 1.95 within 1 mm (phase wraps), profile
+    # varies smoothly with its minimum within 2 mm and a basin of about -8..+4 mm.
+    mode: str = "profile"
+    beta: float = 10.0  # steepness of the soft visibility
+    antennas: int = 0  # antennas per view drawn each step (0: every antenna of the echo grid)
+    stage: int = -1  # whose mesh is compared (Python index over stages)
+
+    def __post_init__(self):
+        if self.mode not in L.RADAR_MODES:
+            raise ValueError(f"mode: must be one of {', '.join(L.RADAR_MODES)}, got {self.mode!r}")
+        if self.balance not in RADAR_BALANCES:
+            raise ValueError(f"balance: must be one of {', '.join(RADAR_BALANCES)}, got {self.balance!r}")
+        if self.weight < 0 or self.warmup_epochs < 0 or self.ramp_epochs < 0 or self.antennas < 0 or self.beta <= 0:
+            raise ValueError("weight, warmup_epochs, ramp_epochs, antennas: must be >= 0; beta: > 0")
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """[optim]: Adam."""
+
+    lr: float = 1e-3
+    epochs: int = 500
+    schedule: str = "constant"  # constant | cosine (per epoch, from lr down to lr * final_lr)
+    final_lr: float = 0.0  # cosine: the last epoch's lr as a fraction of lr
+
+    def __post_init__(self):
+        if not self.lr > 0 or self.epochs < 1:
+            raise ValueError(f"lr/epochs: need > 0 / >= 1, got {self.lr}, {self.epochs}")
+        if self.schedule not in LR_SCHEDULES:
+            raise ValueError(f"schedule: must be one of {', '.join(LR_SCHEDULES)}, got {self.schedule!r}")
+        if not 0 <= self.final_lr <= 1:
+            raise ValueError(f"final_lr: need 0..1, got {self.final_lr}")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """[run]: where and how."""
+
+    device: str = "auto"  # auto (CUDA when available) | cpu | cuda
+    amp: bool = False  # mixed precision (torch.autocast: float16 on CUDA, bfloat16 on CPU)
+    checkpoint_every: int = 1  # epochs
+    val_every: int = 1  # epochs between validations (the last epoch is always validated)
+    val_samples: int = 4000  # surface samples per direction for the validation ASSD / HD
+
+    def __post_init__(self):
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device: must be auto, cpu or cuda, got {self.device!r}")
+        if self.checkpoint_every < 1 or self.val_every < 1 or self.val_samples < 1:
+            raise ValueError(f"checkpoint_every, val_every, val_samples: must be >= 1, got "
+                             f"{self.checkpoint_every}, {self.val_every}, {self.val_samples}")
+
+
+TABLES = {"data": DataConfig, "model": ModelConfig, "loss": LossConfig, "radar_loss": RadarLossConfig,
+          "optim": OptimConfig, "run": RunConfig}
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    name: str
+    seed: int = 0
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    radar_loss: RadarLossConfig = field(default_factory=RadarLossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+    text: str = ""  # the TOML it came from (kept in run folders and checkpoints)
+
+    def as_dict(self) -> dict:
+        """Plain data (lists, not tuples), for JSON and checkpoints."""
+        plain = dataclasses.asdict(self)
+        del plain["text"]
+        return _plain(plain)
+
+
+def _plain(value):
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def parse_config(text: str, file: str = "<config>") -> TrainConfig:
+    """Parse and validate trainer-config TOML; RecipeError naming `file` and the key."""
+    data = parse_toml(text, file, {"name", "seed", *TABLES})
+    if "name" not in data:
+        raise RecipeError(f"{file}: missing required key 'name'")
+    top = build(TrainConfig, {k: data[k] for k in ("name", "seed") if k in data}, file)
+    tables = {k: build(cls, data.get(k, {}), f"{file}: [{k}]") for k, cls in TABLES.items()}
+    return dataclasses.replace(top, **tables, text=text)
+
+
+def load_config(path: str | os.PathLike) -> TrainConfig:
+    return parse_config(read_text(path, "trainer config"), str(path))
+
+
+def split_seed(split: str) -> int:
+    """'seed-7' -> 7 (the split file OUT/splits/seed-7.json)."""
+    match = re.fullmatch(r"seed-(\d+)", split)
+    if not match:
+        raise InputError(f"--split: expected seed-<N>, got {split!r}")
+    return int(match.group(1))
