@@ -11,9 +11,18 @@ Each item's sidecar carries `label_items`, which the `meshes` stage meshes.
 from __future__ import annotations
 
 import hashlib
+import warnings
 from pathlib import Path
 
-from meshsar_builder.dataset.sources import LabelItem, SourceSpec, index_acdc, index_mmwhs, index_nifti
+from meshsar_builder.dataset.sources import (
+    InputWarning,
+    LabelItem,
+    SourceSpec,
+    index_acdc,
+    index_mmwhs,
+    index_nifti,
+    warning_messages,
+)
 from meshsar_builder.geometry import phantom_beating, phantom_heart
 from meshsar_builder.pipeline.io import write_json
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
@@ -26,7 +35,7 @@ def index_source(spec: SourceSpec, root: Path, provenance: str | None = None, su
     """The label maps of a source folder, through the loader of its layout."""
     limit = spec.subjects or None
     if spec.kind == "nifti":
-        return index_nifti(root, spec.name, spec.labels, limit)
+        return index_nifti(root, spec.name, spec.labels, limit, pattern=spec.pattern)
     if spec.kind == "acdc" or spec.anatomy == "biventricular":
         return index_acdc(root, spec.name, limit, provenance=provenance, subject=subject)
     return index_mmwhs(root, spec.name, limit, provenance=provenance or "annotated", subject=subject)
@@ -56,7 +65,7 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         if spec.kind != "phantom":
             root = spec.data_path()
             params = {"kind": spec.kind, "root": str(root), "labels": spec.labels, "subjects": spec.subjects,
-                      "listing": listing_digest(root)}
+                      "pattern": spec.pattern, "listing": listing_digest(root)}
             items.append(Item(spec.name, (f"{spec.name}.index.json",), params=params, data=(spec, str(root), None)))
             continue
         params = {"anatomy": spec.anatomy, "voxel_mm": spec.voxel_mm, "frames": spec.frames, "seed": ctx.recipe.seed}
@@ -73,9 +82,11 @@ def plan(ctx: Context, results: Results) -> list[Item]:
 def run(ctx: Context, item: Item) -> dict:
     spec, root, subject = item.data
     if spec.kind != "phantom":
-        found = index_source(spec, Path(root))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", InputWarning)
+            found = index_source(spec, Path(root))
         write_json(ctx.stage_dir(NAME) / f"{spec.name}.index.json", [li.to_json() for li in found])
-        return {"label_items": [li.to_json() for li in found]}
+        return {"label_items": [li.to_json() for li in found], "warnings": warning_messages(caught)}
     folder = ctx.stage_dir(NAME) / spec.name
     rng = item_rng(ctx.recipe.seed, NAME, item.id)
     if spec.anatomy == "whole_heart":
@@ -86,4 +97,4 @@ def run(ctx: Context, item: Item) -> dict:
     return {"label_items": [li.to_json() for li in found]}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

@@ -52,6 +52,10 @@ def test_defaults_resolved():
         ('name = "a b"\n[[sources]]\nkind = "phantom"\nsubjects = 1\n', r"name: letters, digits"),
         ('name = "t"\n[[sources]\n', r"not valid TOML"),
         (MINIMAL + '[splits]\nratios = { train = "most" }\n', r"\[splits\] ratios.train: expected a number"),
+        ('name = "t"\n[[sources]]\nkind = "mmwhs"\npattern = "*_label.nii.gz"\n', r"#1 pattern: only a nifti source"),
+        ('name = "t"\n[[sources]]\nkind = "nifti"\nlabels = { lv = 1 }\npattern = "*.png"\n', r"#1 pattern: must match NIfTI files"),
+        (MINIMAL.replace("subjects = 2", "subjects = 2\nrequire_affine = true"), r"#1 require_affine: only a real-data source"),
+        ('name = "t"\n[[sources]]\nkind = "acdc"\nrequire_affine = 1\n', r"#1 require_affine: expected true or false"),
     ],
 )
 def test_malformed_recipe_names_file_and_key(tmp_recipe, body, message):

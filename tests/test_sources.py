@@ -10,6 +10,7 @@ import pytest
 from meshsar_builder.dataset.sources import (
     ACDC_TABLE,
     MMWHS_TABLE,
+    InputWarning,
     index_acdc,
     index_mmwhs,
     index_nifti,
@@ -38,7 +39,8 @@ def test_mmwhs_codes_including_421_map_to_canonical(tmp_path):
         data[i] = c
     affine = lps_affine(data.shape)
     path = save_nifti(tmp_path / "ct_train_1001_label.nii.gz", data, affine)
-    labels, ras = read_label_map(path, MMWHS_TABLE)
+    with pytest.warns(InputWarning, match=r"label values with no mapping, read as background: 999 \(6 voxels\)"):
+        labels, ras = read_label_map(path, MMWHS_TABLE)
     assert ras[0, 0] > 0 and ras[1, 1] > 0 and ras[2, 2] > 0  # reoriented to RAS
     inv = np.linalg.inv(ras)
     for i, c in enumerate(codes):

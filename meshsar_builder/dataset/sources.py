@@ -10,6 +10,7 @@ from __future__ import annotations
 import gzip
 import os
 import re
+import warnings
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -47,6 +48,8 @@ class SourceSpec:
     labels: dict[str, int] = field(default_factory=dict)  # nifti: structure name -> label value
     structures: tuple[str, ...] = ()  # meshed union; default: every structure the source has
     use: str = ""  # ssm | direct; default: ssm for whole-heart sources, direct otherwise
+    pattern: str = ""  # nifti: glob of label-map file names (e.g. "*_label.nii.gz"); default: judge by content
+    require_affine: bool = False  # real data: a file with neither sform nor qform is an error, not a warning
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -75,6 +78,12 @@ class SourceSpec:
             set_("voxel_mm", tuple(self.voxel_mm or ((1.0, 1.0, 1.0) if whole else (1.5, 1.5, 8.0))))
         if self.kind == "nifti" and not self.labels:
             raise ValueError("labels: a nifti source needs a label table, e.g. { lv = 1, myo = 2, rv = 3 }")
+        if self.pattern and self.kind != "nifti":
+            raise ValueError(f"pattern: only a nifti source takes a file-name pattern ({self.kind} has a fixed layout)")
+        if self.pattern and not re.search(r"\.nii(\.gz)?\*?$", self.pattern):
+            raise ValueError(f"pattern: must match NIfTI files (end in .nii, .nii.gz or .nii*), got {self.pattern!r}")
+        if self.require_affine and self.kind == "phantom":
+            raise ValueError("require_affine: only a real-data source reads headers that may lack an affine")
         if self.labels and self.kind != "nifti":
             raise ValueError(f"labels: only a nifti source takes a label table ({self.kind} has a fixed one)")
         bad = sorted(set(self.labels) - set(STRUCTURES))
@@ -105,6 +114,20 @@ class SourceSpec:
 
 # Refuse volumes whose header declares more voxels than this before reading any data.
 MAX_VOXELS = 1024**3 // 2
+# Float label maps (resampled, or written by tools that store floats) are rounded when every
+# value is this close to an integer; farther off, it is a probability map or an image.
+ROUND_TOLERANCE = 1e-3
+# A label map has a few dozen values at most; an intensity image (CT, MR) has thousands.
+MAX_LABEL_VALUES = 256
+
+
+class InputWarning(UserWarning):
+    """A usable input with something the user should know (unmapped labels, no spatial header)."""
+
+
+def warning_messages(caught: list[warnings.WarningMessage]) -> list[str]:
+    """The InputWarning texts among recorded warnings, for a stage's sidecar (the user reads them there)."""
+    return [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
 
 
 @dataclass(frozen=True)
@@ -138,19 +161,8 @@ def item_id(source: str, subject: str, frame: int | None = None) -> str:
     return base if frame is None else f"{base}-f{frame:02d}"
 
 
-def read_label_map(path: str | Path, table: dict[int, str]) -> tuple[np.ndarray, np.ndarray]:
-    """Read a NIfTI label map, reorient to the closest canonical RAS, map to canonical ids.
-
-    Returns
-    -------
-    labels : (X, Y, Z) uint8, canonical structure ids (STRUCTURES), 0 elsewhere
-    affine : (4, 4) float64, voxel index -> RAS+ millimetres
-
-    Raises InputError naming the file for unreadable files, non-3-D images,
-    non-integer or non-finite labels, bad affines, oversized headers, and maps
-    that contain none of the table's labels.
-    """
-    path = Path(path)
+def _load_header(path: Path) -> tuple[nib.Nifti1Image, tuple[int, ...]]:
+    """The image proxy and its 3-D shape; InputError naming the file when unreadable, not 3-D or oversized."""
     try:
         img = nib.load(str(path))
         shape = tuple(int(s) for s in img.header.get_data_shape())
@@ -162,27 +174,80 @@ def read_label_map(path: str | Path, table: dict[int, str]) -> tuple[np.ndarray,
         raise InputError(f"{path}: label map must be 3-D, got shape {shape}")
     if min(shape) < 1 or int(np.prod(shape, dtype=np.int64)) > MAX_VOXELS:
         raise InputError(f"{path}: implausible image size {shape} (limit {MAX_VOXELS} voxels)")
-    affine = img.affine
-    if affine is None or not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-9:
-        raise InputError(f"{path}: affine is missing, non-finite or singular")
+    return img, shape
+
+
+def _load_data(path: Path, img: nib.Nifti1Image) -> tuple[nib.Nifti1Image, np.ndarray]:
+    """The image reoriented to closest canonical RAS and its voxel data; InputError when corrupt."""
     try:
         if path.name.endswith(".gz"):
             # Decompress the whole stream: gzip checks its CRC and length, so a truncated file
             # fails here even when the bytes the image needs happen to come before the cut.
             img = type(img).from_bytes(gzip.decompress(path.read_bytes()))
         img = nib.as_closest_canonical(img)
-        data = np.asanyarray(img.dataobj).reshape(img.shape[:3])
+        return img, np.asanyarray(img.dataobj).reshape(img.shape[:3])
     except (OSError, EOFError, zlib.error, gzip.BadGzipFile, ValueError) as e:
         raise InputError(f"{path}: not a readable NIfTI file, image data truncated or corrupt ({type(e).__name__}: {e})") from e
+
+
+def label_map_verdict(path: str | Path) -> str:
+    """Why a readable NIfTI file is not a label map ('' when it may be one, or cannot be read:
+    the loader then names the problem). Judged by content: more than MAX_LABEL_VALUES distinct
+    values (an intensity image)."""
+    path = Path(path)
+    try:
+        img, _ = _load_header(path)  # refuses oversized headers before any data is read
+        data = np.asanyarray(img.dataobj)
+    except Exception:  # noqa: BLE001 (any unreadable file stays indexed: read_label_map names its problem)
+        return ""
+    n = len(np.unique(data))
+    return f"{n} distinct values, an image rather than a label map" if n > MAX_LABEL_VALUES else ""
+
+
+def read_label_map(
+    path: str | Path, table: dict[int, str], require_affine: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Read a NIfTI label map, reorient to the closest canonical RAS, map to canonical ids.
+
+    Returns
+    -------
+    labels : (X, Y, Z) uint8, canonical structure ids (STRUCTURES), 0 elsewhere
+    affine : (4, 4) float64, voxel index -> RAS+ millimetres
+
+    Raises InputError naming the file for unreadable files, non-3-D images,
+    non-finite labels or labels farther than ROUND_TOLERANCE from an integer,
+    bad affines, oversized headers, maps that contain none of the table's
+    labels, and (with `require_affine`) files with neither sform nor qform.
+    Warns (InputWarning, naming the file) for label values outside the table,
+    with their voxel counts, and for a header with neither sform nor qform
+    (the affine is then pixdim only, and the orientation a guess).
+    """
+    path = Path(path)
+    img, shape = _load_header(path)
+    affine = img.affine
+    if affine is None or not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-9:
+        raise InputError(f"{path}: affine is missing, non-finite or singular")
+    if int(img.header["sform_code"]) == 0 and int(img.header["qform_code"]) == 0:
+        what = f"{path}: neither sform nor qform is set; the affine is from pixdim only, so left/right and the origin are guesses"
+        if require_affine:
+            raise InputError(f"{what} (require_affine = true)")
+        warnings.warn(what, InputWarning, stacklevel=2)
+    img, data = _load_data(path, img)
     if data.dtype.kind == "f":
         if not np.all(np.isfinite(data)):
             raise InputError(f"{path}: label map has NaN or infinite values")
-        if not np.all(data == np.round(data)):
-            raise InputError(f"{path}: label map has non-integer values (a probability map or an image?)")
+        rounded = np.round(data)
+        off = float(np.max(np.abs(data - rounded))) if data.size else 0.0
+        if off > ROUND_TOLERANCE:
+            raise InputError(
+                f"{path}: label map has non-integer values, up to {off:.3g} from an integer "
+                f"(tolerance {ROUND_TOLERANCE}; a probability map or an image?)"
+            )
+        data = rounded
     elif data.dtype.kind not in "iub":
         raise InputError(f"{path}: unsupported label data type {data.dtype}")
     data = data.astype(np.int64, copy=False)
-    present = np.unique(data)
+    present, counts = np.unique(data, return_counts=True)
     lut_keys = np.array(sorted(table), dtype=np.int64)
     lut_vals = np.array([STRUCTURES[table[k]] for k in lut_keys], dtype=np.uint8)
     known = np.isin(present, lut_keys)
@@ -190,6 +255,11 @@ def read_label_map(path: str | Path, table: dict[int, str]) -> tuple[np.ndarray,
         raise InputError(
             f"{path}: none of the labels {sorted(table)} found (values present: {present[:20].tolist()})"
         )
+    unmapped = ~known & (present != 0)
+    if unmapped.any():
+        listed = ", ".join(f"{v} ({c} voxels)" for v, c in zip(present[unmapped][:20], counts[unmapped][:20]))
+        more = f" and {unmapped.sum() - 20} more" if unmapped.sum() > 20 else ""
+        warnings.warn(f"{path}: label values with no mapping, read as background: {listed}{more}", InputWarning, stacklevel=2)
     pos = np.searchsorted(lut_keys, data).clip(0, len(lut_keys) - 1)
     labels = np.where(lut_keys[pos] == data, lut_vals[pos], 0).astype(np.uint8)
     return labels, np.asarray(img.affine, dtype=np.float64)
@@ -224,6 +294,9 @@ def parse_info_cfg(path: Path) -> dict[str, str]:
             info[k.strip()] = v.strip()
     for key in ("ED", "ES", "NbFrame"):
         if key not in info:
+            if key == "NbFrame":  # only the cycle fraction needs it
+                warnings.warn(f"{path}: no 'NbFrame' in Info.cfg; cycle_fraction left unknown", InputWarning, stacklevel=2)
+                continue
             raise InputError(f"{path}: missing '{key}' in Info.cfg")
         if not info[key].isdigit():
             raise InputError(f"{path}: '{key}' must be an integer, got {info[key]!r}")
@@ -246,7 +319,8 @@ def index_acdc(
     items = []
     for pdir in patients:
         info = parse_info_cfg(pdir / "Info.cfg")
-        ed, es, nb = int(info["ED"]), int(info["ES"]), int(info["NbFrame"])
+        ed, es = int(info["ED"]), int(info["ES"])
+        nb = int(info["NbFrame"]) if "NbFrame" in info else None
         frames = sorted(pdir.glob(f"{pdir.name}_frame[0-9][0-9]_gt.nii*"))
         if not frames:
             raise InputError(f"{pdir}: no *_frameYY_gt.nii.gz files")
@@ -257,23 +331,40 @@ def index_acdc(
             items.append(
                 LabelItem(
                     item_id(source, pdir.name, frame), source, str(f), pdir.name, ACDC_TABLE,
-                    frame=frame, phase=phase, cycle_fraction=(frame - 1) / nb, provenance=prov,
+                    frame=frame, phase=phase, cycle_fraction=None if nb is None else (frame - 1) / nb, provenance=prov,
                     extra={"group": info.get("Group", ""), "n_frames": nb},
                 )
             )
     return items
 
 
-def index_nifti(root: str | Path, source: str, labels: dict[str, int], limit: int | None = None) -> list[LabelItem]:
-    """Any folder of `*.nii` / `*.nii.gz` label maps, with a recipe label table {structure: value}."""
+def index_nifti(
+    root: str | Path, source: str, labels: dict[str, int], limit: int | None = None, pattern: str = ""
+) -> list[LabelItem]:
+    """A folder of `*.nii` / `*.nii.gz` label maps, with a recipe label table {structure: value}.
+
+    Only label maps are indexed: with `pattern`, the files whose name matches that glob;
+    without, the files whose content may be a label map (label_map_verdict). An
+    InputWarning names the files skipped and why.
+    """
     root = _require_dir(root)
     unknown = sorted(set(labels) - set(STRUCTURES))
     if unknown:
         raise InputError(f"labels: unknown structure names {unknown}; known: {sorted(STRUCTURES)}")
     table = {int(v): k for k, v in labels.items()}
-    files = _first_n([p for p in root.rglob("*.nii*") if p.name.endswith((".nii", ".nii.gz"))], limit)
+    nifti = sorted(p for p in root.rglob("*.nii*") if p.name.endswith((".nii", ".nii.gz")))
+    if pattern:
+        chosen = [p for p in nifti if p.match(pattern)]
+        skipped = {p: f"name does not match {pattern!r}" for p in nifti if p not in chosen}
+    else:
+        skipped = {p: why for p in nifti if (why := label_map_verdict(p))}
+        chosen = [p for p in nifti if p not in skipped]
+    if skipped:
+        listed = "; ".join(f"{p.relative_to(root)} ({why})" for p, why in skipped.items())
+        warnings.warn(f"{root}: skipped {len(skipped)} file(s) that are not label maps: {listed}", InputWarning, stacklevel=2)
+    files = _first_n(chosen, limit)
     if not files:
-        raise InputError(f"{root}: no *.nii or *.nii.gz files found")
+        raise InputError(f"{root}: no *.nii or *.nii.gz label maps found" + (f" ({len(skipped)} skipped)" if skipped else ""))
     items = []
     for f in files:
         subject = re.sub(r"\.nii(\.gz)?$", "", str(f.relative_to(root))).replace("/", "_")
