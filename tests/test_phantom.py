@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from skimage.measure import euler_number, marching_cubes
 
+from meshsar_builder.dataset.sources import MMWHS_TABLE
 from meshsar_builder.geometry import phantom_beating, phantom_heart
 
 MMWHS_CODES = (205, 420, 500, 550, 600, 820, 850)
@@ -130,6 +131,21 @@ def test_whole_heart_union_genus_zero_at_1mm(seed):
     assert ndimage.label(mask)[1] == 1
     assert euler_number(mask, connectivity=1) == 1 and euler_number(mask, connectivity=3) == 1
     assert surface_topology(mask) == (True, 2)
+
+
+def test_whole_heart_volumes_stay_in_the_stated_ranges():
+    """Labelled volumes (voxel counts at 2 mm, within ~1 % of 1 mm) of 20 seeds, RA 35-70 ml included."""
+    volumes = {name: [] for name in phantom_heart.WHOLE_HEART_VOLUMES_ML}
+    for seed in range(20):
+        labels, affine = phantom_heart.whole_heart_labels(phantom_heart.sample_whole_heart_params(rng(100 + seed)), COARSE)
+        voxel_ml = abs(np.linalg.det(affine[:3, :3])) / 1000
+        for code, name in MMWHS_TABLE.items():
+            if code != 421:
+                volumes[name].append(np.count_nonzero(labels == code) * voxel_ml)
+    assert phantom_heart.WHOLE_HEART_VOLUMES_ML["ra"] == (35.0, 70.0)
+    for name, (low, high) in phantom_heart.WHOLE_HEART_VOLUMES_ML.items():
+        assert low <= min(volumes[name]) and max(volumes[name]) <= high, (name, min(volumes[name]), max(volumes[name]))
+        assert np.ptp(volumes[name]) > 0.15 * np.mean(volumes[name]), f"{name} volume varies among subjects"
 
 
 def test_whole_heart_parameters_vary_within_documented_ranges():
