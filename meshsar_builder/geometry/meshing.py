@@ -143,6 +143,24 @@ def nearest_labels(verts: np.ndarray, labels: np.ndarray, mask: np.ndarray, affi
     return labels[tuple(idx[nearest].T)].astype(np.uint8)
 
 
+def long_axis_landmarks(labels: np.ndarray, affine: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, float]:
+    """Apex and base-plane position of the LV of a canonical label map, for motion over a cycle.
+
+    labels : (X, Y, Z) uint8 canonical ids, affine : (4, 4) voxel -> RAS mm, axis : (3,) the long
+    axis toward the apex (for a short-axis stack, its slice normal).
+    Returns apex (3,) RAS mm, the mean of the myocardial voxels within 1 mm (along the axis) of
+    the most apical one, and base (float) mm along the axis, the most basal LV voxel (blood or
+    wall). Voxel centres: both are quantised to the voxel size along the axis.
+    """
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    myo = np.argwhere(labels == STRUCTURES["myo"]) @ affine[:3, :3].T + affine[:3, 3]
+    lv = np.argwhere(np.isin(labels, (STRUCTURES["myo"], STRUCTURES["lv"]))) @ affine[:3, :3].T + affine[:3, 3]
+    if not len(myo):
+        raise InputError("long-axis landmarks: no LV myocardium in the label map")
+    depth = myo @ axis
+    return myo[depth >= depth.max() - 1.0].mean(axis=0), float((lv @ axis).min())
+
+
 def transfer_labels(src_verts: np.ndarray, src_labels: np.ndarray, dst_verts: np.ndarray) -> np.ndarray:
     """Label of the nearest source vertex for each destination vertex.
 
