@@ -64,6 +64,9 @@ def test_defaults_resolved():
         ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nsamples = 2\nstructures = ["lv"]\nuse = "direct"\n', r"#1 use: a shape_model source gives samples"),
         ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nsamples = 2\nstructures = ["lv"]\nn_modes = -1\n', r"#1 n_modes: must be >= 0"),
         ('name = "t"\n[[sources]]\nkind = "acdc"\nmean = "m.vtk"\n', r"#1 mean: only a shape_model source takes mean"),
+        (MINIMAL + "[meshing]\nvessel_length_mm = { heart = 30 }\n", r"\[meshing\] vessel_length_mm: unknown vessel 'heart'"),
+        (MINIMAL + "[meshing]\nvessel_length_mm = { aorta = -5 }\n", r"\[meshing\] vessel_length_mm: aorta must be in \(0, 1000\) mm"),
+        (MINIMAL + '[meshing]\nvessel_length_mm = { pa = "long" }\n', r"\[meshing\] vessel_length_mm.pa: expected a number"),
     ],
 )
 def test_malformed_recipe_names_file_and_key(tmp_recipe, body, message):
@@ -106,7 +109,7 @@ def toml_value(v) -> str:
 @given(
     section=st.sampled_from(sorted(R.SECTIONS)),
     entries=st.dictionaries(
-        st.sampled_from(["spacing_mm", "sigma_mm", "edge_mm", "samples", "variance", "shard_size", "seed",
+        st.sampled_from(["spacing_mm", "sigma_mm", "edge_mm", "samples", "variance", "shard_size", "seed", "vessel_length_mm",
                          "views", "step_mm", "aperture", "size", "fov_mm", "window", "bogus"]),
         toml_scalars, max_size=3,
     ),
