@@ -70,6 +70,7 @@ def listing_digest(root: Path) -> str:
 
 
 def shape_sample_ids(spec: SourceSpec) -> list[str]:
+    """Dataset sample ids of a shape_model source, unique across the recipe."""
     return [f"{spec.name}-sm{i:05d}" for i in range(spec.samples)]
 
 
@@ -123,6 +124,7 @@ def run(ctx: Context, item: Item) -> dict:
 
 
 def draw_shape_samples(ctx: Context, spec: SourceSpec) -> dict:
+    """Read the source's model once, draw and write its samples; the sidecar record."""
     files = spec.model_files()
     model = load_shape_model(files, spec.n_modes, spec.labels, spec.structures[0])
     samples = {}

@@ -91,6 +91,9 @@ def test_index_skips_an_intensity_image_by_content_or_by_pattern(tmp_path):
     with pytest.warns(InputWarning, match=r"ct_image.nii.gz \(name does not match '\*_label.nii.gz'\)"):
         (item,) = index_nifti(tmp_path, "own", {"lv": 500}, pattern="*_label.nii.gz")
     assert item.subject == "case_label"
+    (tmp_path / "case_label.nii.gz").unlink()
+    with pytest.warns(InputWarning), pytest.raises(InputError, match=r"none of the 1 \*.nii / \*.nii.gz files is a label map"):
+        index_nifti(tmp_path, "own", {"lv": 500})
 
 
 def test_acdc_without_nbframe_leaves_only_cycle_fraction_unknown(tmp_path):

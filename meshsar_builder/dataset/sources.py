@@ -416,8 +416,10 @@ def index_nifti(
         listed = "; ".join(f"{p.relative_to(root)} ({why})" for p, why in skipped.items())
         warnings.warn(f"{root}: skipped {len(skipped)} file(s) that are not label maps: {listed}", InputWarning, stacklevel=2)
     files = _first_n(chosen, limit)
+    if not nifti:
+        raise InputError(f"{root}: no *.nii or *.nii.gz files found")
     if not files:
-        raise InputError(f"{root}: no *.nii or *.nii.gz label maps found" + (f" ({len(skipped)} skipped)" if skipped else ""))
+        raise InputError(f"{root}: none of the {len(nifti)} *.nii / *.nii.gz files is a label map (see the warning)")
     items = []
     for f in files:
         subject = re.sub(r"\.nii(\.gz)?$", "", str(f.relative_to(root))).replace("/", "_")
