@@ -7,13 +7,15 @@ its sidecar `meshes/<item>.json` with size, area, volume, topology and provenanc
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
+import nibabel as nib
 import numpy as np
 import trimesh
 
-from meshsar_builder.dataset.sources import LabelItem, read_label_map
+from meshsar_builder.dataset.sources import InputWarning, LabelItem, read_label_map, warning_messages
 from meshsar_builder.geometry.meshfile import write_ply
-from meshsar_builder.geometry.meshing import labels_to_surface
+from meshsar_builder.geometry.meshing import labels_to_surface, long_axis_landmarks
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 
@@ -28,16 +30,26 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         for d in rec["label_items"]:
             li = LabelItem.from_json(d)
             spec = specs[li.source]
-            params = {"meshing": meshing, "structures": list(spec.structures), "table": d["table"]}
-            items.append(Item(li.item_id, (f"{li.item_id}.ply",), inputs=(li.path,), params=params, data=(d, spec.structures, spec.use)))
+            params = {"meshing": meshing, "structures": list(spec.structures), "table": d["table"],
+                      "require_affine": spec.require_affine}
+            items.append(Item(li.item_id, (f"{li.item_id}.ply",), inputs=(li.path,), params=params,
+                              data=(d, spec.structures, spec.use, spec.require_affine)))
     return items
 
 
 def run(ctx: Context, item: Item) -> dict:
-    d, structures, use = item.data
+    d, structures, use, require_affine = item.data
     li = LabelItem.from_json(d)
-    labels, affine = read_label_map(li.path, li.table)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InputWarning)
+        labels, affine = read_label_map(li.path, li.table, require_affine)
     surf = labels_to_surface(labels, affine, list(structures), ctx.recipe.meshing, name=li.path)
+    motion = {}
+    if li.frame is not None and (labels == STRUCTURES["myo"]).any():
+        # Frames of a cycle: apex and base plane along the stack's slice normal (the long axis
+        # of a short-axis stack), for the card's cycle plot.
+        apex, base = long_axis_landmarks(labels, affine, nib.load(li.path).affine[:3, 2])
+        motion = {"apex_mm": [round(float(c), 3) for c in apex], "base_mm": round(base, 3)}
     write_ply(ctx.stage_dir(NAME) / f"{item.id}.ply", surf.verts, surf.faces, surf.labels)
     mesh = trimesh.Trimesh(surf.verts, surf.faces, process=False)
     lo, hi = surf.verts.min(axis=0), surf.verts.max(axis=0)
@@ -56,8 +68,10 @@ def run(ctx: Context, item: Item) -> dict:
         # from voxel counts of the label map: chamber volumes over the cycle, for the dataset card
         "structure_volumes_ml": {s: round(float(counts[i] * voxel_ml), 3) for s, i in STRUCTURES.items() if counts[i]},
         "use": use,
+        **motion,
+        "warnings": warning_messages(caught),
         **{k: d[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")},
     }
 
 
-STAGE = Stage(name=NAME, version=2, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=3, plan=plan, run=run)

@@ -1,7 +1,8 @@
 """Stage `radar`: SAR images and decimated echo of every dataset mesh (DESIGN sections 4, 5).
 
-Dataset meshes are the shape model's samples (sources with `use = "ssm"`) and
-the remeshed meshes of sources with `use = "direct"` (every frame). Each is
+Dataset meshes are the shape model's samples (sources with `use = "ssm"`), the
+samples of external shape models (`kind = "shape_model"` sources) and the
+remeshed meshes of sources with `use = "direct"` (every frame). Each is
 moved to its heart-centred frame (minus the centre of its bounding box) and
 scanned from every view of `[radar]`.
 
@@ -34,6 +35,11 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
             meta = {"source": "+".join(rec["sources"]), "subject": sid, "frame": None, "phase": "",
                     "provenance": "ssm", "subset": "ssm", "ssm_coeffs": s["coeffs"]}
             out.append((sid, str(ctx.stage_dir("ssm") / "samples" / f"{sid}.ply"), meta))
+    for name, rec in results.of("sources").items():
+        for sid, s in rec.get("shape_samples", {}).items():  # an external shape model's samples
+            meta = {"source": name, "subject": sid, "frame": None, "phase": "", "provenance": "shape_model",
+                    "subset": "ssm", "ssm_coeffs": s["coeffs"], "shape_model": rec["shape_model"]}
+            out.append((sid, str(ctx.stage_dir("sources") / name / f"{sid}.ply"), meta))
     for mid, rec in results.of("remesh").items():
         if rec["use"] == "direct":
             meta = {k: rec[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")}

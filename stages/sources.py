@@ -4,18 +4,37 @@ Outputs, per source `<name>`:
 - phantom: `sources/<name>/ct_train_NNNN_label.nii.gz` (whole heart) or
   `sources/<name>/patientNNN/{Info.cfg, patientNNN_frameYY_gt.nii.gz}` (biventricular),
   one item per subject, indexed back through the same loaders as real data;
-- real data: `sources/<name>.index.json`, the list of label maps found.
-Each item's sidecar carries `label_items`, which the `meshes` stage meshes.
+- real data: `sources/<name>.index.json`, the list of label maps found;
+- shape_model: `sources/<name>/<name>-smNNNNN.ply`, `samples` shapes drawn from the external
+  PCA model as SSM samples are ([ssm] truncate_sigma, max_redraws; each from its own seed),
+  one item per source (the model is read once).
+Each item's sidecar carries `label_items`, which the `meshes` stage meshes; a shape_model's
+carries `shape_samples` (coefficients, redraws) and `shape_model` (its files and their
+digests), which the `radar` stage takes as dataset meshes.
 """
 
 from __future__ import annotations
 
 import hashlib
+import warnings
 from pathlib import Path
 
-from meshsar_builder.dataset.sources import LabelItem, SourceSpec, index_acdc, index_mmwhs, index_nifti
+import numpy as np
+
+from meshsar_builder.dataset.sources import (
+    InputWarning,
+    LabelItem,
+    SourceSpec,
+    index_acdc,
+    index_mmwhs,
+    index_nifti,
+    load_shape_model,
+    warning_messages,
+)
 from meshsar_builder.geometry import phantom_beating, phantom_heart
-from meshsar_builder.pipeline.io import write_json
+from meshsar_builder.geometry.meshfile import write_ply
+from meshsar_builder.geometry.ssm import sample_valid
+from meshsar_builder.pipeline.io import sha256_file, write_json
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 from meshsar_builder.pipeline.seeding import item_rng
 
@@ -26,7 +45,7 @@ def index_source(spec: SourceSpec, root: Path, provenance: str | None = None, su
     """The label maps of a source folder, through the loader of its layout."""
     limit = spec.subjects or None
     if spec.kind == "nifti":
-        return index_nifti(root, spec.name, spec.labels, limit)
+        return index_nifti(root, spec.name, spec.labels, limit, pattern=spec.pattern)
     if spec.kind == "acdc" or spec.anatomy == "biventricular":
         return index_acdc(root, spec.name, limit, provenance=provenance, subject=subject)
     return index_mmwhs(root, spec.name, limit, provenance=provenance or "annotated", subject=subject)
@@ -50,13 +69,27 @@ def listing_digest(root: Path) -> str:
     return h.hexdigest()
 
 
+def shape_sample_ids(spec: SourceSpec) -> list[str]:
+    """Dataset sample ids of a shape_model source, unique across the recipe."""
+    return [f"{spec.name}-sm{i:05d}" for i in range(spec.samples)]
+
+
 def plan(ctx: Context, results: Results) -> list[Item]:
     items = []
     for spec in ctx.recipe.sources:
+        if spec.kind == "shape_model":
+            files = spec.model_files()
+            params = {"n_modes": spec.n_modes, "labels": spec.labels, "structures": spec.structures,
+                      "truncate_sigma": ctx.recipe.ssm.truncate_sigma, "max_redraws": ctx.recipe.ssm.max_redraws,
+                      "seed": ctx.recipe.seed}
+            outputs = tuple(f"{spec.name}/{sid}.ply" for sid in shape_sample_ids(spec))
+            items.append(Item(spec.name, outputs, inputs=tuple(str(f) for f in files.values()), params=params,
+                              data=(spec, None, None)))
+            continue
         if spec.kind != "phantom":
             root = spec.data_path()
             params = {"kind": spec.kind, "root": str(root), "labels": spec.labels, "subjects": spec.subjects,
-                      "listing": listing_digest(root)}
+                      "pattern": spec.pattern, "listing": listing_digest(root)}
             items.append(Item(spec.name, (f"{spec.name}.index.json",), params=params, data=(spec, str(root), None)))
             continue
         params = {"anatomy": spec.anatomy, "voxel_mm": spec.voxel_mm, "frames": spec.frames, "seed": ctx.recipe.seed}
@@ -72,10 +105,14 @@ def plan(ctx: Context, results: Results) -> list[Item]:
 
 def run(ctx: Context, item: Item) -> dict:
     spec, root, subject = item.data
+    if spec.kind == "shape_model":
+        return draw_shape_samples(ctx, spec)
     if spec.kind != "phantom":
-        found = index_source(spec, Path(root))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", InputWarning)
+            found = index_source(spec, Path(root))
         write_json(ctx.stage_dir(NAME) / f"{spec.name}.index.json", [li.to_json() for li in found])
-        return {"label_items": [li.to_json() for li in found]}
+        return {"label_items": [li.to_json() for li in found], "warnings": warning_messages(caught)}
     folder = ctx.stage_dir(NAME) / spec.name
     rng = item_rng(ctx.recipe.seed, NAME, item.id)
     if spec.anatomy == "whole_heart":
@@ -86,4 +123,22 @@ def run(ctx: Context, item: Item) -> dict:
     return {"label_items": [li.to_json() for li in found]}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+def draw_shape_samples(ctx: Context, spec: SourceSpec) -> dict:
+    """Read the source's model once, draw and write its samples; the sidecar record."""
+    files = spec.model_files()
+    model = load_shape_model(files, spec.n_modes, spec.labels, spec.structures[0])
+    samples = {}
+    for sid in shape_sample_ids(spec):
+        coeffs, verts, redraws = sample_valid(model, item_rng(ctx.recipe.seed, NAME, sid), ctx.recipe.ssm)
+        write_ply(ctx.stage_dir(NAME) / spec.name / f"{sid}.ply", verts, model.faces, model.labels)
+        samples[sid] = {"coeffs": np.round(coeffs, 6).tolist(), "redraws": redraws}
+    provenance = {
+        "files": {k: f.name for k, f in files.items()},
+        "sha256": {k: sha256_file(f) for k, f in files.items()},
+        "n_modes": len(model.variances),
+        "variance_explained": round(float(model.variances.sum() / model.total_variance), 6),
+    }
+    return {"label_items": [], "shape_samples": samples, "shape_model": provenance}
+
+
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

@@ -130,6 +130,10 @@ def test_smoke_recipe_meshes_are_closed_and_same_with_two_workers(tmp_path):
     assert set(np.unique(wh)) == set(range(2, 8))
     side = json.loads((one / "meshes" / "phantom_bv-patient001-f01.json").read_text())
     assert (side["phase"], side["provenance"], side["frame"]) == ("ED", "phantom", 1)
+    # the beat's base plane descends toward the apex (8 mm slices: the apex is known to a slice)
+    frames = [json.loads((one / "meshes" / f"phantom_bv-patient001-f{i:02d}.json").read_text()) for i in range(1, 5)]
+    assert 10.0 <= max(f["base_mm"] for f in frames) - side["base_mm"] <= 15.0
+    assert max(np.linalg.norm(np.subtract(f["apex_mm"], side["apex_mm"])) for f in frames) <= 8.0
     build(recipe, two, workers=2, until="meshes")
     for stage in ("sources", "meshes"):
         a = {p.relative_to(one / stage): p.read_bytes() for p in (one / stage).rglob("*") if p.is_file() and p.suffix != ".json"}

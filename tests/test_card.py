@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 import trimesh
 
-from meshsar_builder.dataset.card import render_views
+from meshsar_builder.dataset.card import cycle_plot, render_views
 from meshsar_builder.radar.params import view_frame
 
 FOV, SIZE = 160.0, 128
@@ -26,3 +27,13 @@ def test_render_puts_a_ball_where_the_image_grid_does(view):
     assert abs(cols.mean() - expect_col) < 1.5 and abs(rows.mean() - expect_row) < 1.5
     # parallel projection at the image scale: the ball's disc is 2 r wide in pixels
     assert (cols.max() - cols.min() + 1) == pytest.approx(16.0 / FOV * SIZE, abs=2)
+
+
+def test_cycle_plot_draws_volumes_and_motion_and_skips_unknown_phases(tmp_path):
+    recs = [{"source": "bv", "subject": "p1", "cycle_fraction": t, "phase": ph, "apex_mm": [0.0, 0.0, 80.0 + d / 10],
+             "base_mm": d, "structure_volumes_ml": {"lv": 140 - 4 * d, "rv": 160 - 4 * d, "myo": 120.0}}
+            for t, ph, d in ((0.0, "ED", 0.0), (0.35, "ES", 14.0), (0.7, "", 4.0))]
+    recs.append({**recs[1], "cycle_fraction": None, "phase": ""})  # a frame of a subject without NbFrame
+    cycle_plot(recs, tmp_path / "cycle.png")
+    image = plt.imread(tmp_path / "cycle.png")
+    assert image.shape[1] > 1.8 * image.shape[0]  # two panels: volumes, and motion

@@ -7,8 +7,10 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy import ndimage
+from skimage.measure import euler_number
 
-from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface, signed_distance
+from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface, signed_distance, trim_vessels
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError, MeshError
 
@@ -124,3 +126,80 @@ def test_ellipsoids_any_voxel_size_are_closed_genus0(axes, voxel, spacing):
     assert m.is_watertight and m.euler_number == 2
     # thick slices lose the caps: a loose bound that still catches gross errors
     assert abs(m.volume / (4 / 3 * np.pi * np.prod(axes)) - 1) < 0.15
+
+
+# --- vessel trimming -----------------------------------------------------------------------------
+
+
+def canonical_whole_heart(seed: int, voxel_mm: float = 2.0):
+    """A whole-heart phantom's label map in canonical ids, its affine and its parameters."""
+    from meshsar_builder.dataset.sources import MMWHS_TABLE
+    from meshsar_builder.geometry import phantom_heart
+
+    params = phantom_heart.sample_whole_heart_params(np.random.default_rng(seed))
+    codes, affine = phantom_heart.whole_heart_labels(params, (voxel_mm,) * 3)
+    lut = np.zeros(codes.max() + 1, np.uint8)
+    for code, name in MMWHS_TABLE.items():
+        lut[code] = STRUCTURES[name]
+    return lut[codes], affine, params
+
+
+def world_of(mask, affine):
+    return np.argwhere(mask) @ affine[:3, :3].T + affine[:3, 3]
+
+
+@pytest.mark.parametrize("seed", [0, 5])
+def test_vessels_are_cut_at_their_length_from_the_valve(seed):
+    labels, affine, p = canonical_whole_heart(seed)
+    trimmed = trim_vessels(labels, affine, {"aorta": 30.0, "pa": 25.0})
+    # the phantom's own centreline directions: the ascending aorta and the pulmonary trunk are straight
+    tilt_r, tilt_a = np.radians([p["ascending_tilt_right_deg"], p["ascending_tilt_anterior_deg"]])
+    ascending = np.array([np.tan(tilt_r), np.tan(tilt_a), 1.0]) / np.linalg.norm([np.tan(tilt_r), np.tan(tilt_a), 1.0])
+    pitch, yaw = np.radians([p["pa_pitch_deg"], p["pa_yaw_deg"]])
+    trunk = np.array([-np.sin(yaw) * np.sin(pitch), -np.cos(yaw) * np.sin(pitch), np.cos(pitch)])
+    for vessel, chamber, axis, length in (("aorta", "lv", ascending, 30.0), ("pa", "rv", trunk, 25.0)):
+        kept = trimmed == STRUCTURES[vessel]
+        valve = kept & ndimage.binary_dilation(trimmed == STRUCTURES[chamber])
+        reach = (world_of(kept, affine) @ axis).max() - world_of(valve, affine).mean(axis=0) @ axis
+        assert length - 4.0 <= reach <= length + 4.0, (vessel, reach)
+        assert kept.sum() < (labels == STRUCTURES[vessel]).sum()
+        assert ndimage.label(kept)[1] == 1
+    for name in ("lv", "myo", "rv", "la", "ra"):
+        assert np.array_equal(trimmed == STRUCTURES[name], labels == STRUCTURES[name])
+    surf = labels_to_surface(labels, affine, list(STRUCTURES),
+                             MeshingParams(spacing_mm=2.0, sigma_mm=1.5, vessel_length_mm={"aorta": 30.0, "pa": 25.0}))
+    mesh = trimesh.Trimesh(surf.verts, surf.faces, process=False)
+    assert mesh.is_watertight and mesh.euler_number == 2 and surf.closing_voxels == 0
+
+
+def test_trimming_removes_a_vessel_that_comes_back_to_a_chamber():
+    """An aorta that arches over and comes down onto the LA (which touches the LV) closes a
+    handle; cut at 30 mm it leaves one genus-0 solid, the atrium untouched."""
+    axes = [np.arange(-30.0, 71.0), np.arange(-15.0, 16.0), np.arange(-30.0, 95.0)]
+    x, y, z = np.meshgrid(*axes, indexing="ij")
+    affine = np.diag([1.0, 1.0, 1.0, 1.0])
+    affine[:3, 3] = [a[0] for a in axes]
+    arch = np.sqrt((np.sqrt((x - 20) ** 2 + (z - 60) ** 2) - 20) ** 2 + y**2)
+    ring = np.sqrt(x**2 + y**2), np.sqrt((x - 40) ** 2 + y**2)
+    tube = np.where(z >= 60, arch, np.minimum(np.where(z >= 0, ring[0], np.inf), np.where(z >= 0, ring[1], np.inf))) <= 7
+    labels = np.zeros(x.shape, np.uint8)
+    labels[tube] = STRUCTURES["aorta"]
+    labels[(x - 40) ** 2 + y**2 + (z + 5) ** 2 <= 22**2] = STRUCTURES["la"]
+    labels[x**2 + y**2 + z**2 <= 20**2] = STRUCTURES["lv"]
+    assert euler_number(labels > 0, connectivity=3) == 0  # one handle
+    trimmed = trim_vessels(labels, affine, {"aorta": 30.0})
+    aorta = world_of(trimmed == STRUCTURES["aorta"], affine)
+    assert 47.0 <= aorta[:, 2].max() <= 52.0 and aorta[:, 0].max() < 8.0  # the ascending part only
+    assert np.array_equal(trimmed == STRUCTURES["la"], labels == STRUCTURES["la"])
+    assert euler_number(trimmed > 0, connectivity=3) == 1
+    surf = labels_to_surface(labels, affine, ["lv", "la", "aorta"], MeshingParams(vessel_length_mm={"aorta": 30.0}))
+    mesh = trimesh.Trimesh(surf.verts, surf.faces, process=False)
+    assert mesh.is_watertight and mesh.euler_number == 2 and surf.closing_voxels == 0
+
+
+def test_a_vessel_without_its_valve_is_named():
+    labels = np.zeros((20, 20, 20), np.uint8)
+    labels[2:8, 2:8, 2:8] = STRUCTURES["pa"]
+    labels[12:18, 12:18, 12:18] = STRUCTURES["rv"]
+    with pytest.raises(MeshError, match="case.nii: pa touches no rv"):
+        trim_vessels(labels, np.eye(4), {"pa": 25.0}, name="case.nii")

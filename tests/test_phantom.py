@@ -13,7 +13,10 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from skimage.measure import euler_number, marching_cubes
 
+from meshsar_builder.dataset.sources import MMWHS_TABLE
 from meshsar_builder.geometry import phantom_beating, phantom_heart
+from meshsar_builder.geometry.meshing import long_axis_landmarks
+from meshsar_builder.geometry.structures import STRUCTURES
 
 MMWHS_CODES = (205, 420, 500, 550, 600, 820, 850)
 COARSE = (2.0, 2.0, 2.0)  # whole heart at 2 mm: 8x fewer voxels, same anatomy
@@ -132,6 +135,21 @@ def test_whole_heart_union_genus_zero_at_1mm(seed):
     assert surface_topology(mask) == (True, 2)
 
 
+def test_whole_heart_volumes_stay_in_the_stated_ranges():
+    """Labelled volumes (voxel counts at 2 mm, within ~1 % of 1 mm) of 20 seeds, RA 35-70 ml included."""
+    volumes = {name: [] for name in phantom_heart.WHOLE_HEART_VOLUMES_ML}
+    for seed in range(20):
+        labels, affine = phantom_heart.whole_heart_labels(phantom_heart.sample_whole_heart_params(rng(100 + seed)), COARSE)
+        voxel_ml = abs(np.linalg.det(affine[:3, :3])) / 1000
+        for code, name in MMWHS_TABLE.items():
+            if code != 421:
+                volumes[name].append(np.count_nonzero(labels == code) * voxel_ml)
+    assert phantom_heart.WHOLE_HEART_VOLUMES_ML["ra"] == (35.0, 70.0)
+    for name, (low, high) in phantom_heart.WHOLE_HEART_VOLUMES_ML.items():
+        assert low <= min(volumes[name]) and max(volumes[name]) <= high, (name, min(volumes[name]), max(volumes[name]))
+        assert np.ptp(volumes[name]) > 0.15 * np.mean(volumes[name]), f"{name} volume varies among subjects"
+
+
 def test_whole_heart_parameters_vary_within_documented_ranges():
     a, b = phantom_heart.sample_whole_heart_params(rng(0)), phantom_heart.sample_whole_heart_params(rng(1))
     assert a == phantom_heart.sample_whole_heart_params(rng(0))
@@ -149,10 +167,11 @@ def test_whole_heart_parameters_vary_within_documented_ranges():
 @given(seed=st.integers(0, 2**32 - 1))
 def test_biventricular_beat_is_realistic(seed):
     params = phantom_beating.sample_biventricular_params(rng(seed))
-    frames, affine, info = phantom_beating.biventricular_frames(params, n_frames=20)
+    frames, affines, info = phantom_beating.biventricular_frames(params, n_frames=20)
     assert len(frames) == 20 and all(f.dtype == np.uint8 and f.shape == frames[0].shape for f in frames)
-    np.testing.assert_allclose(np.linalg.norm(affine[:3, :3], axis=0), (1.5, 1.5, 8.0))
-    voxel_ml = abs(np.linalg.det(affine[:3, :3])) / 1000
+    assert affines.shape == (20, 4, 4) and np.allclose(affines[:, :3, :3], affines[0, :3, :3])
+    np.testing.assert_allclose(np.linalg.norm(affines[0, :3, :3], axis=0), (1.5, 1.5, 8.0))
+    voxel_ml = abs(np.linalg.det(affines[0, :3, :3])) / 1000
     lv = np.array([np.count_nonzero(f == 3) for f in frames]) * voxel_ml
     rv = np.array([np.count_nonzero(f == 1) for f in frames]) * voxel_ml
     myo = np.array([np.count_nonzero(f == 2) for f in frames]) * voxel_ml
@@ -162,20 +181,50 @@ def test_biventricular_beat_is_realistic(seed):
     assert info["es_frame"] == es + 1
     assert 0.25 <= es / 20 <= 0.45
     ef = 1 - lv[es] / lv[0]
-    assert 0.48 <= ef <= 0.67 and abs(ef - params["lv_ef"]) < 0.03
+    assert 0.55 <= ef <= 0.70 and abs(ef - params["lv_ef"]) < 0.03
     assert info["ef"] == pytest.approx(ef)
     np.testing.assert_allclose(info["lv_volume_ml"], lv)
-    assert 80 < lv[0] < 190
-    assert np.ptp(myo) / myo.mean() < 0.07, "myocardial volume conserved"
+    assert 120 <= lv[0] <= 160 and 130 <= rv[0] <= 190, "adult end-diastolic volumes"
+    assert np.ptp(myo) / myo.mean() < 0.05, "myocardial volume conserved"
     # Filling: rapid early filling, then a slow diastasis, then the atrial kick before ED.
     assert lv[es + 4] - lv[es] > lv[15] - lv[es + 4] > 0 and lv[19] > lv[16]
     rv_ef = 1 - rv.min() / rv[0]
-    assert 0.43 <= rv_ef <= 0.62
+    assert 0.43 <= rv_ef <= 0.72
     assert (rv[0] - rv.min()) / (lv[0] - lv.min()) == pytest.approx(1.0, abs=0.1), "RV and LV stroke volumes match"
     # The wall thickens in systole: myocardial voxels per LV voxel-ring grow from ED to ES.
     mid = frames[0].shape[2] // 3
     wall = [np.count_nonzero(frames[i][:, :, mid] == 2) / np.sqrt(np.count_nonzero(frames[i][:, :, mid] == 3)) for i in (0, es)]
     assert wall[1] > wall[0]
+
+
+def rv_angle_deg(labels: np.ndarray, k: int) -> float:
+    """Angle of the RV centroid about the LV cavity's centre in slice k, from the first voxel
+    axis toward the second (counter-clockwise seen from the apex)."""
+    rv, lv = np.argwhere(labels[:, :, k] == 1).mean(axis=0), np.argwhere(labels[:, :, k] == 3).mean(axis=0)
+    return float(np.degrees(np.arctan2(rv[1] - lv[1], rv[0] - lv[0])))
+
+
+def test_beat_keeps_the_apex_still_lowers_the_base_and_twists():
+    """At 2 mm slices (motion measured to the voxel): apex within 5 mm, AV plane down 12-15 mm
+    at end-systole, base and apex turning opposite ways."""
+    params = phantom_beating.sample_biventricular_params(rng(2))
+    frames, affines, info = phantom_beating.biventricular_frames(params, n_frames=10, voxel_mm=(2.0, 2.0, 2.0))
+    es = info["es_frame"] - 1
+    # ACDC codes (1 RV, 2 myo, 3 LV) to canonical ids, as the loader maps them
+    canonical = np.array([0, STRUCTURES["rv"], STRUCTURES["myo"], STRUCTURES["lv"]], np.uint8)
+    landmarks = [long_axis_landmarks(canonical[f], a, a[:3, 2]) for f, a in zip(frames, affines)]
+    apex = np.array([a for a, _ in landmarks])
+    base = np.array([b for _, b in landmarks])
+    assert np.linalg.norm(apex - apex[0], axis=1).max() < 5.0
+    assert 12.0 <= base[es] - base[0] <= 15.0
+    assert base[es] - base[0] == pytest.approx(info["base_descent_mm"][es], abs=1.0)
+    assert np.argmax(base) == es
+    # Twist: the RV crescent (symmetric at ED) turns clockwise near the base, counter-clockwise
+    # toward the apex, by angles linear in depth (zero a third of the way down the epicardium).
+    basal, apical = 2, int(0.6 * np.count_nonzero(np.isin(frames[es], (2, 3)).any(axis=(0, 1))))
+    assert abs(rv_angle_deg(frames[0], basal)) < 0.5 and abs(rv_angle_deg(frames[0], apical)) < 0.5
+    turn = rv_angle_deg(frames[es], apical) - rv_angle_deg(frames[es], basal)
+    assert rv_angle_deg(frames[es], basal) < -1.0 and 0.2 * info["twist_deg"][es] < turn < info["twist_deg"][es]
 
 
 def test_biventricular_rv_is_a_crescent_beside_the_lv():
@@ -210,6 +259,9 @@ def test_acdc_subject_layout_and_reproducibility(tmp_path):
 
     images = [nib.load(subject / f"patient001_frame{i:02d}_gt.nii.gz") for i in range(1, 13)]
     np.testing.assert_allclose(images[0].header.get_zooms(), (1.5, 1.5, 8.0))
+    es = int(cfg["ES"]) - 1  # the stack follows the base plane toward the apex
+    descent = (images[es].affine[:3, 3] - images[0].affine[:3, 3]) @ images[0].affine[:3, 2] / 8.0
+    assert 12.0 <= descent <= 15.0
     lv = [np.count_nonzero(np.asarray(img.dataobj) == 3) for img in images]
     assert int(np.argmax(lv)) + 1 == int(cfg["ED"]) and int(np.argmin(lv)) + 1 == int(cfg["ES"])
     assert all(np.asarray(img.dataobj).dtype == np.uint8 for img in images)

@@ -52,6 +52,21 @@ def test_defaults_resolved():
         ('name = "a b"\n[[sources]]\nkind = "phantom"\nsubjects = 1\n', r"name: letters, digits"),
         ('name = "t"\n[[sources]\n', r"not valid TOML"),
         (MINIMAL + '[splits]\nratios = { train = "most" }\n', r"\[splits\] ratios.train: expected a number"),
+        ('name = "t"\n[[sources]]\nkind = "mmwhs"\npattern = "*_label.nii.gz"\n', r"#1 pattern: only a nifti source"),
+        ('name = "t"\n[[sources]]\nkind = "nifti"\nlabels = { lv = 1 }\npattern = "*.png"\n', r"#1 pattern: must match NIfTI files"),
+        (MINIMAL.replace("subjects = 2", "subjects = 2\nrequire_affine = true"), r"#1 require_affine: only a label-map source"),
+        ('name = "t"\n[[sources]]\nkind = "acdc"\nrequire_affine = 1\n', r"#1 require_affine: expected true or false"),
+        ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nsamples = 2\nstructures = ["lv"]\n', r"#1 modes: a shape_model source needs mean, modes and variances"),
+        ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nstructures = ["lv"]\n', r"#1 samples: a shape_model source needs samples >= 1"),
+        ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nsamples = 2\n', r"#1 structures: a shape_model without vertex_labels is one structure"),
+        ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nsamples = 2\nvertex_labels = "l.csv"\n', r"#1 vertex_labels: needs a label table"),
+        ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nsamples = 2\nstructures = ["lv"]\nlabels = { lv = 1 }\n', r"#1 labels: a shape_model's label table maps"),
+        ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nsamples = 2\nstructures = ["lv"]\nuse = "direct"\n', r"#1 use: a shape_model source gives samples"),
+        ('name = "t"\n[[sources]]\nkind = "shape_model"\nmean = "m.vtk"\nvariances = "v.csv"\nmodes = "c.csv.gz"\nsamples = 2\nstructures = ["lv"]\nn_modes = -1\n', r"#1 n_modes: must be >= 0"),
+        ('name = "t"\n[[sources]]\nkind = "acdc"\nmean = "m.vtk"\n', r"#1 mean: only a shape_model source takes mean"),
+        (MINIMAL + "[meshing]\nvessel_length_mm = { heart = 30 }\n", r"\[meshing\] vessel_length_mm: unknown vessel 'heart'"),
+        (MINIMAL + "[meshing]\nvessel_length_mm = { aorta = -5 }\n", r"\[meshing\] vessel_length_mm: aorta must be in \(0, 1000\) mm"),
+        (MINIMAL + '[meshing]\nvessel_length_mm = { pa = "long" }\n', r"\[meshing\] vessel_length_mm.pa: expected a number"),
     ],
 )
 def test_malformed_recipe_names_file_and_key(tmp_recipe, body, message):
@@ -94,7 +109,7 @@ def toml_value(v) -> str:
 @given(
     section=st.sampled_from(sorted(R.SECTIONS)),
     entries=st.dictionaries(
-        st.sampled_from(["spacing_mm", "sigma_mm", "edge_mm", "samples", "variance", "shard_size", "seed",
+        st.sampled_from(["spacing_mm", "sigma_mm", "edge_mm", "samples", "variance", "shard_size", "seed", "vessel_length_mm",
                          "views", "step_mm", "aperture", "size", "fov_mm", "window", "bogus"]),
         toml_scalars, max_size=3,
     ),
@@ -107,3 +122,27 @@ def test_any_section_content_parses_or_raises_recipe_error(section, entries):
         assert str(e).startswith("fuzz.toml: ")
     else:
         assert getattr(r, section) is not None
+
+
+@settings(max_examples=120, deadline=None)
+@given(
+    entries=st.dictionaries(
+        st.sampled_from(["mean", "modes", "variances", "vertex_labels", "samples", "n_modes", "structures", "use",
+                         "pattern", "require_affine", "subjects"]),
+        st.one_of(toml_scalars, st.sampled_from(['"m.vtk"', '["lv"]', '["lv", "rv"]', '"ssm"', '"direct"'])),
+        max_size=6,
+    ),
+    kind=st.sampled_from(["shape_model", "nifti", "acdc"]),
+)
+def test_any_source_entry_parses_or_raises_recipe_error(entries, kind):
+    literal = lambda v: isinstance(v, str) and v[:1] in ('"', "[")  # noqa: E731 (already TOML)
+    lines = "".join(f"{k} = {v if literal(v) else toml_value(v)}\n" for k, v in entries.items())
+    body = f'name = "t"\n[[sources]]\nkind = "{kind}"\n' + ('labels = { lv = 1 }\n' if kind == "nifti" else "") + lines
+    try:
+        r = R.parse(body, "fuzz.toml")
+    except RecipeError as e:
+        assert str(e).startswith("fuzz.toml: ")
+    else:
+        (spec,) = r.sources
+        if spec.kind == "shape_model":
+            assert spec.samples >= 1 and spec.mean and spec.modes and spec.variances and spec.use == "ssm"

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import gzip
+import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,15 +12,24 @@ import pytest
 from meshsar_builder.dataset.sources import (
     ACDC_TABLE,
     MMWHS_TABLE,
+    InputWarning,
     index_acdc,
     index_mmwhs,
     index_nifti,
+    load_shape_model,
     read_label_map,
+    read_surface,
 )
+from meshsar_builder.dataset.shards import Shard
+from meshsar_builder.dataset.verify import verify
+from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline import recipe as R
 from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import sha256_file
+from meshsar_builder.pipeline.runner import build
 
-from .conftest import save_nifti, save_nifti_with_sform
+from .conftest import MANIFESTS, save_nifti, save_nifti_with_sform
 from .data.make_bad import huge_header
 
 MMWHS_CODES = {205: "myo", 420: "la", 421: "la", 500: "lv", 550: "ra", 600: "rv", 820: "aorta", 850: "pa"}
@@ -38,7 +49,8 @@ def test_mmwhs_codes_including_421_map_to_canonical(tmp_path):
         data[i] = c
     affine = lps_affine(data.shape)
     path = save_nifti(tmp_path / "ct_train_1001_label.nii.gz", data, affine)
-    labels, ras = read_label_map(path, MMWHS_TABLE)
+    with pytest.warns(InputWarning, match=r"label values with no mapping, read as background: 999 \(6 voxels\)"):
+        labels, ras = read_label_map(path, MMWHS_TABLE)
     assert ras[0, 0] > 0 and ras[1, 1] > 0 and ras[2, 2] > 0  # reoriented to RAS
     inv = np.linalg.inv(ras)
     for i, c in enumerate(codes):
@@ -135,3 +147,150 @@ def test_mmwhs_and_nifti_indexes(tmp_path):
         index_mmwhs(tmp_path / "nowhere", "mmwhs")
     with pytest.raises(InputError, match="no MM-WHS label maps"):
         index_mmwhs(tmp_path / "own", "mmwhs")
+
+
+# --- external shape models ----------------------------------------------------------------------
+
+ATLAS = Path(__file__).parent / "data" / "shape_model"
+ATLAS_FILES = {"mean": ATLAS / "mean.vtk", "modes": ATLAS / "modes.csv.gz", "variances": ATLAS / "variances.csv",
+               "vertex_labels": ATLAS / "labels.csv"}
+
+
+def test_synthetic_atlas_files_are_reproducible(tmp_path, monkeypatch):
+    from .data import make_shape_model
+
+    monkeypatch.setattr(make_shape_model, "FOLDER", tmp_path)
+    make_shape_model.main()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in ATLAS.iterdir())
+    for p in ATLAS.iterdir():
+        assert (tmp_path / p.name).read_bytes() == p.read_bytes(), p.name
+
+
+def test_shape_model_reads_the_atlas_layout():
+    model = load_shape_model(ATLAS_FILES, labels={"lv": 10, "rv": 20})
+    # read independently: the components' rows are x1, y1, z1, x2, ...
+    columns = np.loadtxt(gzip.open(ATLAS_FILES["modes"], "rt"), delimiter=",")
+    assert model.mean.shape == (162, 3) and model.modes.shape == (3, 162, 3) and model.faces.shape == (320, 3)
+    np.testing.assert_allclose(model.modes[1][7], columns[21:24, 1])
+    # the first mode is the uniform scaling: each vertex moves along its own position
+    np.testing.assert_allclose(model.modes[0], model.mean / np.linalg.norm(model.mean), atol=1e-6)
+    np.testing.assert_allclose(model.variances, np.loadtxt(ATLAS_FILES["variances"]))
+    superior = model.mean[:, 2] >= 0
+    assert np.all(model.labels[superior] == STRUCTURES["lv"]) and np.all(model.labels[~superior] == STRUCTURES["rv"])
+    assert np.isclose(model.total_variance, model.variances.sum())
+    two = load_shape_model({k: v for k, v in ATLAS_FILES.items() if k != "vertex_labels"}, n_modes=2, structure="myo")
+    assert two.modes.shape == (2, 162, 3) and set(two.labels) == {STRUCTURES["myo"]}
+    assert two.total_variance == pytest.approx(model.total_variance)
+
+
+def test_shape_model_reads_ply_and_npy_alike(tmp_path):
+    model = load_shape_model(ATLAS_FILES, labels={"lv": 10, "rv": 20})
+    write_ply(tmp_path / "mean.ply", model.mean, model.faces)
+    np.save(tmp_path / "modes.npy", model.modes.reshape(3, -1).T)
+    np.save(tmp_path / "variances.npy", model.variances)
+    again = load_shape_model({"mean": tmp_path / "mean.ply", "modes": tmp_path / "modes.npy",
+                              "variances": tmp_path / "variances.npy"}, structure="lv")
+    for a, b in ((again.mean, model.mean), (again.modes, model.modes), (again.faces, model.faces)):
+        np.testing.assert_allclose(a, b)
+
+
+def _atlas_variant(tmp_path, name, text):
+    files = dict(ATLAS_FILES)
+    files[name] = tmp_path / ATLAS_FILES[name].name.replace(".gz", "")
+    files[name].write_text(text)
+    return files
+
+
+@pytest.mark.parametrize(
+    "name, text, message",
+    [
+        ("modes", "\n".join(",".join(["0.1"] * 486) for _ in range(3)), r"modes.csv: 3 rows, expected 3 x 162 vertices of mean.vtk \(it has 3n columns"),
+        ("variances", "4\n1\n", r"variances.csv: 2 variances for 3 modes"),
+        ("variances", "1\n4\n9\n", r"variances.csv: variances must be >= 0 and in descending order"),
+        ("vertex_labels", "10\n" * 161, r"labels.csv: 161 labels for 162 vertices"),
+        ("vertex_labels", "10\n" * 161 + "30\n", r"labels.csv: values \[30\] not in the label table"),
+        ("mean", "# vtk DataFile Version 3.0\nx\nASCII\nDATASET POLYDATA\nPOINTS 1 float\n0 0 0\n", r"mean.vtk: surface has no polygons"),
+    ],
+)
+def test_shape_model_bad_files_are_named(tmp_path, name, text, message):
+    files = _atlas_variant(tmp_path, name, text)
+    with pytest.raises(InputError, match=message):
+        load_shape_model(files, labels={"lv": 10, "rv": 20})
+
+
+def test_shape_model_components_scaled_by_sigma_are_refused(tmp_path):
+    model = load_shape_model(ATLAS_FILES, labels={"lv": 10, "rv": 20})
+    np.save(tmp_path / "scaled.npy", model.modes.reshape(3, -1).T * np.sqrt(model.variances))
+    with pytest.raises(InputError, match=r"scaled.npy: columns are not orthonormal .* divide them out"):
+        load_shape_model({**ATLAS_FILES, "modes": tmp_path / "scaled.npy"}, labels={"lv": 10, "rv": 20})
+
+
+SHAPE_RECIPE = """\
+name = "atlas"
+seed = 3
+[[sources]]
+kind = "shape_model"
+path = "{path}"
+mean = "mean.vtk"
+modes = "{modes}"
+variances = "{variances}"
+structures = ["lv"]
+samples = {samples}
+"""
+
+
+def test_shape_model_samples_are_seeded_truncated_and_clean(tmp_path, tmp_recipe):
+    from meshsar_builder.geometry.remesh import self_intersecting_faces
+
+    recipe = tmp_recipe(SHAPE_RECIPE.format(path=ATLAS, modes="modes.csv.gz", variances="variances.csv", samples=5))
+    results = build(R.load(recipe), tmp_path / "out", until="sources")
+    rec = results.of("sources")["shape_model"]
+    model = load_shape_model({k: v for k, v in ATLAS_FILES.items() if k != "vertex_labels"}, structure="lv")
+    assert rec["shape_model"]["files"]["modes"] == "modes.csv.gz" and rec["shape_model"]["n_modes"] == 3
+    for sid, s in rec["shape_samples"].items():
+        verts, faces, labels = read_ply(tmp_path / "out" / "sources" / "shape_model" / f"{sid}.ply")
+        coeffs = np.array(s["coeffs"])
+        assert np.all(np.abs(coeffs) <= 3 * np.sqrt(model.variances))
+        expected = model.mean + np.einsum("k,knd->nd", coeffs, model.modes)
+        np.testing.assert_allclose(verts, expected, atol=1e-4)
+        assert np.array_equal(faces, model.faces) and set(labels) == {STRUCTURES["lv"]}
+        assert not self_intersecting_faces(verts, faces).any()
+    more = tmp_recipe(SHAPE_RECIPE.format(path=ATLAS, modes="modes.csv.gz", variances="variances.csv", samples=7), "more.toml")
+    again = build(R.load(more), tmp_path / "more", until="sources").of("sources")["shape_model"]["shape_samples"]
+    assert all(again[sid] == s for sid, s in rec["shape_samples"].items()), "a sample does not change with the count"
+
+
+def test_shape_model_draws_that_self_intersect_are_redrawn(tmp_path, tmp_recipe):
+    """One mode (sigma 1 m) pushing vertex 0 inward and the pole (0, 0, 45) outward, or the
+    reverse: far enough inward either pierces the far side, so most draws must be redrawn."""
+    from meshsar_builder.geometry.remesh import self_intersecting_faces
+
+    mean, faces = read_surface(ATLAS_FILES["mean"])
+    pole = int(np.argmax(mean[:, 2]))
+    dent = np.zeros((len(mean), 3))
+    dent[0], dent[pole] = -mean[0] / np.linalg.norm(mean[0]), mean[pole] / np.linalg.norm(mean[pole])
+    np.save(tmp_path / "dent.npy", dent.reshape(-1, 1) / np.sqrt(2))
+    np.save(tmp_path / "dent_var.npy", np.array([1000.0**2]))
+    (tmp_path / "mean.vtk").write_bytes(ATLAS_FILES["mean"].read_bytes())
+    body = SHAPE_RECIPE.format(path=tmp_path, modes="dent.npy", variances="dent_var.npy", samples=4)
+    rec = build(R.load(tmp_recipe(body + "[ssm]\nmax_redraws = 100\n")), tmp_path / "out", until="sources").of("sources")["shape_model"]
+    assert sum(s["redraws"] for s in rec["shape_samples"].values()) > 0
+    for sid in rec["shape_samples"]:
+        verts, _, _ = read_ply(tmp_path / "out" / "sources" / "shape_model" / f"{sid}.ply")
+        assert not self_intersecting_faces(verts, faces).any()
+
+
+@pytest.mark.slow
+def test_shape_model_example_builds_end_to_end(tmp_path, monkeypatch):
+    monkeypatch.chdir(MANIFESTS.parent)
+    monkeypatch.delenv("MESHSAR_DATA", raising=False)
+    out = tmp_path / "out"
+    results = build(R.load(MANIFESTS / "shape_model_example.toml"), out)
+    assert results.failures == [] and verify(out) == []
+    index = json.loads((out / "index.json").read_text())
+    assert index["counts"]["source"] == {"synthetic_atlas": 6}
+    shard = Shard(out / index["shards"][0]["file"])
+    sample = shard[0]
+    assert sample.meta["provenance"] == "shape_model" and sample.meta["subset"] == "ssm"
+    assert sample.meta["shape_model"]["sha256"]["modes"] == sha256_file(ATLAS_FILES["modes"])
+    assert set(np.unique(sample.vert_labels)) == {STRUCTURES["lv"], STRUCTURES["rv"]}

@@ -137,26 +137,43 @@ def ssm_mode_strip(model, view: dict, fov_mm: float, path: Path, n_modes: int = 
 
 
 def cycle_plot(frames: list[dict], path: Path) -> None:
-    """Chamber volumes over the cycle of each dynamic subject (from label-map voxel counts).
+    """Each dynamic subject over the cycle: chamber volumes (from label-map voxel counts) with
+    the EF in the legend, and, where the records have them, the apex displacement and the
+    base-plane descent from end-diastole (mm).
 
-    frames : meshes-stage records with subject, cycle_fraction, phase, structure_volumes_ml.
+    frames : meshes-stage records with source, subject, cycle_fraction, phase,
+        structure_volumes_ml, and optionally apex_mm (3,) and base_mm; frames whose
+        cycle_fraction is unknown (no NbFrame) are left out.
     """
-    fig, ax = plt.subplots(figsize=(6, 3.2))
+    fig, (ax, motion) = plt.subplots(1, 2, figsize=(10, 3.4))
     by_subject: dict[str, list[dict]] = {}
     for f in frames:
-        by_subject.setdefault(f"{f['source']}/{f['subject']}", []).append(f)
+        if f["cycle_fraction"] is not None:
+            by_subject.setdefault(f"{f['source']}/{f['subject']}", []).append(f)
     for i, (subject, recs) in enumerate(sorted(by_subject.items())):
         recs = sorted(recs, key=lambda f: f["cycle_fraction"])
         t = [f["cycle_fraction"] for f in recs]
+        lv = np.array([f["structure_volumes_ml"].get("lv", 0.0) for f in recs])
+        ef = f" EF {1 - lv.min() / lv.max():.2f}" if lv.max() > 0 else ""
         for name, ls in (("lv", "-"), ("rv", "--"), ("myo", ":")):
             ax.plot(t, [f["structure_volumes_ml"].get(name, 0.0) for f in recs], ls, color=f"C{i}",
-                    label=f"{subject} {name.upper()}")
+                    label=f"{subject} {name.upper()}" + (ef if name == "lv" else ""))
         for f in recs:
             if f["phase"]:
                 ax.annotate(f["phase"], (f["cycle_fraction"], f["structure_volumes_ml"].get("lv", 0.0)), fontsize=7)
+        if all("apex_mm" in f for f in recs):
+            ed = next((f for f in recs if f["phase"] == "ED"), recs[0])
+            apex = np.linalg.norm(np.array([f["apex_mm"] for f in recs]) - ed["apex_mm"], axis=1)
+            motion.plot(t, apex, "-", color=f"C{i}", label=f"{subject} apex displacement")
+            motion.plot(t, [f["base_mm"] - ed["base_mm"] for f in recs], "--", color=f"C{i}",
+                        label=f"{subject} base-plane descent")
     ax.set_xlabel("fraction of the cardiac cycle")
     ax.set_ylabel("volume (ml)")
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=6, ncol=2)
+    motion.set_xlabel("fraction of the cardiac cycle")
+    motion.set_ylabel("from end-diastole (mm)")
+    if motion.lines:
+        motion.legend(fontsize=6)
     fig.tight_layout()
     save_figure(fig, path)
 

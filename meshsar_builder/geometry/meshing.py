@@ -8,7 +8,7 @@ would stair-step without the resampling.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -16,10 +16,19 @@ import trimesh
 from scipy import ndimage
 from scipy.spatial import cKDTree
 from skimage import measure
+from skimage.graph import MCP_Geometric
 from skimage.morphology import ball
 
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError, MeshError
+
+
+# Each great vessel and the chamber(s) whose valve it leaves from.
+VALVE_CHAMBERS: dict[str, tuple[str, ...]] = {"aorta": ("lv",), "pa": ("rv",)}
+# Step between the slabs of equal distance from the valve whose centroids trace the centreline.
+_SLAB_MM = 2.0
+# The cut's normal: the centreline's direction over this arclength either side of the cut.
+_TANGENT_MM = 4.0
 
 
 @dataclass(frozen=True)
@@ -27,6 +36,9 @@ class MeshingParams:
     spacing_mm: float = 1.0  # isotropic resampling step of the signed distance
     sigma_mm: float = 1.0  # Gaussian smoothing of the resampled signed distance
     max_closing_voxels: int = 3  # largest closing radius tried to remove handles
+    # Great vessels cut at this length (mm) from their valve along their centreline, e.g.
+    # {aorta = 30, pa = 25}: label maps' vessel lengths depend on the field of view and the annotator.
+    vessel_length_mm: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
         if not self.spacing_mm > 0:
@@ -35,6 +47,12 @@ class MeshingParams:
             raise ValueError(f"sigma_mm: must be >= 0, got {self.sigma_mm}")
         if not 0 <= self.max_closing_voxels <= 10:
             raise ValueError(f"max_closing_voxels: must be in 0..10, got {self.max_closing_voxels}")
+        unknown = sorted(set(self.vessel_length_mm) - set(VALVE_CHAMBERS))
+        if unknown:
+            raise ValueError(f"vessel_length_mm: unknown vessel {unknown[0]!r}; vessels: {sorted(VALVE_CHAMBERS)}")
+        for vessel, length in self.vessel_length_mm.items():
+            if not 0 < length < 1000:
+                raise ValueError(f"vessel_length_mm: {vessel} must be in (0, 1000) mm, got {length}")
 
 
 class Surface(NamedTuple):
@@ -110,6 +128,8 @@ def labels_to_surface(
     labels : (X, Y, Z) uint8 canonical ids, affine : (4, 4). Raises InputError when
     none of the structures is present, MeshError when no closed genus-0 surface results.
     """
+    if params.vessel_length_mm:
+        labels = trim_vessels(labels, affine, params.vessel_length_mm, name)
     ids = [STRUCTURES[s] for s in structures]
     mask = np.isin(labels, ids)
     if not mask.any():
@@ -131,6 +151,68 @@ def labels_to_surface(
     )
 
 
+def trim_vessels(labels: np.ndarray, affine: np.ndarray, lengths: dict[str, float], name: str = "label map") -> np.ndarray:
+    """Cut each great vessel by a plane `lengths[vessel]` mm from its valve, along its centreline.
+
+    labels : (X, Y, Z) uint8 canonical ids, affine : (4, 4) voxel -> RAS mm,
+    lengths : {"aorta" | "pa": mm}. Returns a copy with the cut-off parts set to 0.
+    The valve is the vessel's contact with its chamber's blood pool (VALVE_CHAMBERS). The
+    centreline is traced by the centroids of slabs of equal geodesic distance from the valve
+    inside the vessel (26-connected, mm), starting at the valve's centroid; the cut is where its
+    arclength reaches the length, by the plane through that point normal to the centreline there.
+    What lies beyond the plane, and any part of the vessel not connected to the valve, is
+    removed: the vessel ends in a flat cap and keeps no downstream contact with other structures.
+    A vessel shorter than its length loses only its unconnected parts; a map without the vessel
+    is left as is.
+    MeshError when a vessel touches no chamber of its valve.
+    """
+    spacing = np.linalg.norm(affine[:3, :3], axis=0)
+    out = labels.copy()
+    for vessel, length in sorted(lengths.items()):
+        mask = labels == STRUCTURES[vessel]
+        if not mask.any():
+            continue
+        chamber = np.isin(labels, [STRUCTURES[c] for c in VALVE_CHAMBERS[vessel]])
+        valve = mask & ndimage.binary_dilation(chamber)
+        if not valve.any():
+            raise MeshError(f"{name}: {vessel} touches no {'/'.join(VALVE_CHAMBERS[vessel])}, so it has no valve to measure from")
+        # Work in the vessel's bounding box: geodesic distance (mm) from the valve inside the vessel.
+        box = ndimage.find_objects(mask.astype(np.uint8))[0]
+        sub, valve_sub = mask[box], valve[box]
+        offset = np.array([s.start for s in box])
+        distance, _ = MCP_Geometric(np.where(sub, 1.0, np.inf), sampling=tuple(spacing)).find_costs(np.argwhere(valve_sub))
+        # Parts of the vessel not connected to the valve (infinite distance) are dropped below.
+        inside = np.argwhere(sub & np.isfinite(distance))
+        d = distance[tuple(inside.T)]
+        world = (inside + offset) @ affine[:3, :3].T + affine[:3, 3]
+        # Centreline: the valve centroid, then slab centroids every _SLAB_MM of distance.
+        levels = np.arange(_SLAB_MM, d.max() + _SLAB_MM, _SLAB_MM)
+        which = np.clip(np.round(d / _SLAB_MM).astype(int), 0, len(levels))
+        sums = np.zeros((len(levels) + 1, 3))
+        np.add.at(sums, which, world)
+        counts = np.bincount(which, minlength=len(levels) + 1)
+        centreline = np.vstack([world[valve_sub[tuple(inside.T)]].mean(axis=0), (sums[1:] / np.maximum(counts[1:, None], 1))[counts[1:] > 0]])
+        level = np.concatenate([[0.0], levels[counts[1:] > 0]])
+        arclength = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centreline, axis=0), axis=1))])
+        if arclength[-1] < length + _TANGENT_MM:
+            out[box][sub & ~np.isfinite(distance)] = 0
+            continue  # shorter than the cut length
+        point = np.array([np.interp(length, arclength, centreline[:, k]) for k in range(3)])
+        ahead, behind = (np.array([np.interp(s, arclength, centreline[:, k]) for k in range(3)])
+                         for s in (length + _TANGENT_MM, max(length - _TANGENT_MM, 0.0)))
+        normal = (ahead - behind) / np.linalg.norm(ahead - behind)
+        # Beyond the plane, and past the first half of the length (a vessel curving back near
+        # its root keeps that part): cut. Then keep only what still connects to the valve.
+        cut = ((world - point) @ normal > 0) & (d > 0.5 * np.interp(length, arclength, level))
+        kept = np.zeros_like(sub)
+        kept[tuple(inside[~cut].T)] = True
+        components, _ = ndimage.label(kept, structure=np.ones((3, 3, 3)))
+        attached = np.unique(components[valve_sub & kept])
+        kept &= np.isin(components, attached[attached > 0])
+        out[box][sub & ~kept] = 0
+    return out
+
+
 def nearest_labels(verts: np.ndarray, labels: np.ndarray, mask: np.ndarray, affine: np.ndarray) -> np.ndarray:
     """Label of the nearest boundary voxel of `mask` for each vertex.
 
@@ -141,6 +223,24 @@ def nearest_labels(verts: np.ndarray, labels: np.ndarray, mask: np.ndarray, affi
     centres = idx @ affine[:3, :3].T + affine[:3, 3]
     _, nearest = cKDTree(centres).query(verts)
     return labels[tuple(idx[nearest].T)].astype(np.uint8)
+
+
+def long_axis_landmarks(labels: np.ndarray, affine: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, float]:
+    """Apex and base-plane position of the LV of a canonical label map, for motion over a cycle.
+
+    labels : (X, Y, Z) uint8 canonical ids, affine : (4, 4) voxel -> RAS mm, axis : (3,) the long
+    axis toward the apex (for a short-axis stack, its slice normal).
+    Returns apex (3,) RAS mm, the mean of the myocardial voxels within 1 mm (along the axis) of
+    the most apical one, and base (float) mm along the axis, the most basal LV voxel (blood or
+    wall). Voxel centres: both are quantised to the voxel size along the axis.
+    """
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    myo = np.argwhere(labels == STRUCTURES["myo"]) @ affine[:3, :3].T + affine[:3, 3]
+    lv = np.argwhere(np.isin(labels, (STRUCTURES["myo"], STRUCTURES["lv"]))) @ affine[:3, :3].T + affine[:3, 3]
+    if not len(myo):
+        raise InputError("long-axis landmarks: no LV myocardium in the label map")
+    depth = myo @ axis
+    return myo[depth >= depth.max() - 1.0].mean(axis=0), float((lv @ axis).min())
 
 
 def transfer_labels(src_verts: np.ndarray, src_labels: np.ndarray, dst_verts: np.ndarray) -> np.ndarray:

@@ -4,8 +4,11 @@ Truncated prolate spheroids (LV cavity, epicardium) and a crescent RV on an ACDC
 stack whose slice normal is the LV long axis. The LV cavity volume follows a periodic curve
 (ejection, rapid filling, diastasis, atrial kick); the myocardial volume is held constant, so the
 wall thickens as the cavity empties; the RV is resized per frame, by bisection on its voxel
-count, to follow the same curve with its own ejection fraction. Frames are written as NIfTI in
-the ACDC layout, so the real-data loader reads them unchanged.
+count, to follow the same curve with its own ejection fraction. The heart moves as real ones do:
+the apex stays put while the atrioventricular (base) plane descends toward it in systole, and the
+ventricles twist (apex counter-clockwise, base clockwise, seen from the apex). The stack follows
+the base plane (as slice tracking does), so each frame has its own affine. Frames are written as
+NIfTI in the ACDC layout, so the real-data loader reads them unchanged.
 """
 
 from __future__ import annotations
@@ -22,18 +25,21 @@ ACDC_BACKGROUND, ACDC_RV, ACDC_MYO, ACDC_LV = 0, 1, 2, 3
 
 # Biventricular (beating) parameters: name -> (low, high), drawn uniformly. Normal adults.
 BIVENTRICULAR_RANGES: dict[str, tuple[float, float]] = {
-    # LV end-diastolic volume; CMR normal adults ~100-160 ml.
-    "lv_edv_ml": (100.0, 160.0),
-    # LV ejection fraction; normal 50-65 %.
-    "lv_ef": (0.50, 0.65),
+    # LV end-diastolic volume; CMR normal adults 120-160 ml (margin kept for voxelisation).
+    "lv_edv_ml": (125.0, 155.0),
+    # LV ejection fraction; normal 55-70 %.
+    "lv_ef": (0.57, 0.68),
     # Base to endocardial apex at end-diastole.
     "lv_cavity_length_mm": (75.0, 95.0),
     # End-diastolic wall; CMR normal 7-11 mm.
     "lv_wall_mm": (7.0, 11.0),
     # Apical wall relative to the lateral wall.
     "lv_apex_wall_ratio": (0.6, 0.9),
-    # Cavity length scales as volume**exponent: 0.15-0.3 gives 10-20 % long-axis shortening.
-    "long_axis_exponent": (0.15, 0.3),
+    # Descent of the atrioventricular plane toward the (still) apex at end-systole: 12-15 mm in
+    # normal adults (mitral annular plane systolic excursion); the LV shortens by as much.
+    "av_descent_mm": (12.5, 14.5),
+    # Net LV twist at end-systole, apex relative to base (normal 10-20 deg by tagged CMR; a little less here).
+    "lv_twist_deg": (8.0, 14.0),
     # End-systole as a fraction of the cycle (ejection ~ 300-350 ms of ~ 900 ms).
     "es_fraction": (0.30, 0.40),
     # Rapid-filling duration as a fraction of the cycle (~ 100-180 ms).
@@ -44,8 +50,9 @@ BIVENTRICULAR_RANGES: dict[str, tuple[float, float]] = {
     "diastasis_share": (0.03, 0.1),
     # Atrial contraction onset (P wave + ~100 ms), fraction of the cycle.
     "atrial_onset_fraction": (0.80, 0.87),
-    # RV ejection fraction; CMR normal 45-60 %.
-    "rv_ef": (0.45, 0.60),
+    # RV end-diastolic volume over the LV's: the RV is slightly larger (RV EDV 130-190 ml; its
+    # ejection fraction follows from the stroke volumes, 46-70 % here).
+    "rv_edv_ratio": (1.05, 1.2),
     # RV stroke volume over LV stroke volume; equal without shunt or regurgitation.
     "rv_sv_ratio": (0.95, 1.05),
     # RV crescent half-width around the LV, relative to the LV epicardial radius.
@@ -80,6 +87,8 @@ _SLICES_BELOW_APEX = 1
 _RV_SEPTAL_ANCHOR = -0.5
 # End-diastolic RV crescent thickness before resizing to the target volume (mm).
 _RV_NOMINAL_DEPTH_MM = 20.0
+# Share of the twist taken by the base (turning the other way): the apex turns ~2x the base.
+_BASE_TWIST_SHARE = 1.0 / 3.0
 
 
 def _ease(x):
@@ -111,10 +120,14 @@ def biventricular_frames(params: dict, n_frames: int = 20, voxel_mm=(1.5, 1.5, 8
     """Label maps of one beating biventricular heart over one cycle, ED first.
 
     The LV cavity is a half prolate spheroid on the base plane (r, L); the epicardium another
-    (R, L + apex wall) holding the myocardial volume constant; the base plane stays on a slice
-    boundary, so voxel counts measure volumes without whole-slice jumps, and long-axis
-    shortening draws the apex toward the base. The RV is an ellipsoid anchored inside the LV,
-    beyond its axis (so the LV leaves a crescent of it), scaled per frame (bisection on its voxel count) to its target volume.
+    (R, L + apex wall) holding the myocardial volume constant. The LV shortens by the descent
+    of the base plane toward the apex, in proportion to the ejected volume; the apex stays
+    still in the world. The stack follows the base plane, so the base stays on a slice boundary
+    (voxel counts measure volumes without whole-slice jumps) and each frame's affine moves the
+    stack by the descent. The RV is an ellipsoid anchored inside the LV, beyond its axis (so the
+    LV leaves a crescent of it), scaled per frame (bisection on its voxel count) to its target
+    volume; its base descends with the LV's. Both twist about the long axis, linearly from
+    base to apex, in proportion to the ejected volume.
 
     Parameters
     ----------
@@ -125,10 +138,12 @@ def biventricular_frames(params: dict, n_frames: int = 20, voxel_mm=(1.5, 1.5, 8
     Returns
     -------
     frames : list of T label maps (X, Y, Z) uint8, ACDC codes (0 bg, 1 RV, 2 myo, 3 LV).
-    affine : (4, 4) float64, voxel index -> RAS mm; the slice normal is the LV long axis.
+    affines : (T, 4, 4) float64, voxel index -> RAS mm per frame; the slice normal is the LV
+        long axis (toward the apex); frames differ only by a shift along it.
     info : dict with ed_frame, es_frame (1-based, ES at the smallest measured LV volume),
         lv_volume_ml, rv_volume_ml, myo_volume_ml (T,) lists measured from voxel counts,
-        ef and rv_ef (measured), height_cm, weight_kg.
+        ef and rv_ef (measured), base_descent_mm and twist_deg (T,) lists as modelled,
+        height_cm, weight_kg.
     """
     p = params
     spacing = np.asarray(voxel_mm, float)
@@ -136,9 +151,12 @@ def biventricular_frames(params: dict, n_frames: int = 20, voxel_mm=(1.5, 1.5, 8
     volume = _lv_volume_curve(np.arange(n_frames) / n_frames, p)
 
     # LV geometry per frame: cavity (r, L) from its volume and long-axis shortening; epicardium
-    # from the constant myocardial volume.
+    # from the constant myocardial volume. Shortening and twist follow the ejected fraction.
+    ejected = (1.0 - volume) / p["lv_ef"]  # 0 at end-diastole, 1 at end-systole
+    descent = p["av_descent_mm"] * ejected
+    twist = np.radians(p["lv_twist_deg"]) * ejected
     cavity_ml = p["lv_edv_ml"] * volume
-    cavity_length = p["lv_cavity_length_mm"] * volume ** p["long_axis_exponent"]
+    cavity_length = p["lv_cavity_length_mm"] - descent
     cavity_radius = np.sqrt(1000.0 * cavity_ml / (2.0 / 3.0 * np.pi * cavity_length))
     apex_wall = p["lv_wall_mm"] * p["lv_apex_wall_ratio"]
     epi_length = cavity_length + apex_wall
@@ -163,37 +181,45 @@ def biventricular_frames(params: dict, n_frames: int = 20, voxel_mm=(1.5, 1.5, 8
     rv_axes = np.array([0.5 * (epi_radius_ed + _RV_NOMINAL_DEPTH_MM - anchor),
                         p["rv_width_ratio"] * epi_radius_ed, p["rv_length_ratio"] * p["lv_cavity_length_mm"]])
 
-    def rv_mask(kappa: float, epicardium: np.ndarray) -> np.ndarray:
-        depth, width, length = kappa * rv_axes[0], kappa * rv_axes[1], kappa ** p["long_axis_exponent"] * rv_axes[2]
-        inside = (((x - anchor - depth) / depth) ** 2 + (y / width) ** 2 + (z / length) ** 2 <= 1.0) & (z >= 0.0)
+    def rv_mask(kappa: float, length: float, xr, yr, epicardium: np.ndarray) -> np.ndarray:
+        depth, width = kappa * rv_axes[0], kappa * rv_axes[1]
+        inside = (((xr - anchor - depth) / depth) ** 2 + (yr / width) ** 2 + (z / length) ** 2 <= 1.0) & (z >= 0.0)
         return inside & ~epicardium
 
-    lv_sv_ml = p["lv_edv_ml"] * p["lv_ef"]
-    rv_edv_ml = p["rv_sv_ratio"] * lv_sv_ml / p["rv_ef"]
-    rv_target_ml = rv_edv_ml * (1.0 - p["rv_ef"] * (1.0 - volume) / p["lv_ef"])
+    rv_edv_ml = p["rv_edv_ratio"] * p["lv_edv_ml"]
+    rv_sv_ml = p["rv_sv_ratio"] * p["lv_edv_ml"] * p["lv_ef"]
+    rv_target_ml = rv_edv_ml - rv_sv_ml * ejected
 
     frames = []
     for i in range(n_frames):
-        cavity = _half_spheroid(x, y, z, cavity_radius[i], cavity_length[i])
-        epicardium = _half_spheroid(x, y, z, epi_radius[i], epi_length[i])
+        # Twist: each slice turned about the long axis by an angle linear in its depth, the base
+        # one way and the apex (share 1 - _BASE_TWIST_SHARE) the other.
+        angle = twist[i] * (z / epi_length[i] - _BASE_TWIST_SHARE)
+        xr, yr = x * np.cos(angle) + y * np.sin(angle), y * np.cos(angle) - x * np.sin(angle)
+        cavity = _half_spheroid(xr, yr, z, cavity_radius[i], cavity_length[i])
+        epicardium = _half_spheroid(xr, yr, z, epi_radius[i], epi_length[i])
+        rv_length = rv_axes[2] * cavity_length[i] / cavity_length[0]
         # Smallest kappa whose RV holds the target: bisection on the (monotone) voxel count.
         low, high = 0.2, 3.0
         for _ in range(30):
             mid = 0.5 * (low + high)
-            if np.count_nonzero(rv_mask(mid, epicardium)) * voxel_ml < rv_target_ml[i]:
+            if np.count_nonzero(rv_mask(mid, rv_length, xr, yr, epicardium)) * voxel_ml < rv_target_ml[i]:
                 low = mid
             else:
                 high = mid
         labels = np.zeros((n_xy[0], n_xy[1], n_z), np.uint8)
-        labels[rv_mask(high, epicardium)] = ACDC_RV
+        labels[rv_mask(high, rv_length, xr, yr, epicardium)] = ACDC_RV
         labels[epicardium] = ACDC_MYO
         labels[cavity] = ACDC_LV
         frames.append(labels)
 
     axes = heart_axes(p["axis_azimuth_deg"], p["axis_elevation_deg"], p["axis_roll_deg"])
-    affine = np.eye(4)
-    affine[:3, :3] = axes.T * spacing
-    affine[:3, 3] = axes.T @ first
+    # The stack's origin moves with the base plane, toward the apex, by the descent: in the
+    # world the apex (base + epicardial length) stays where it was at end-diastole.
+    shift = epi_length[0] - epi_length
+    affines = np.tile(np.eye(4), (n_frames, 1, 1))
+    affines[:, :3, :3] = axes.T * spacing
+    affines[:, :3, 3] = axes.T @ first + shift[:, None] * axes[2]
 
     counts = {code: np.array([np.count_nonzero(f == code) for f in frames]) * voxel_ml for code in (ACDC_LV, ACDC_MYO, ACDC_RV)}
     lv, rv = counts[ACDC_LV], counts[ACDC_RV]
@@ -206,10 +232,12 @@ def biventricular_frames(params: dict, n_frames: int = 20, voxel_mm=(1.5, 1.5, 8
         "myo_volume_ml": counts[ACDC_MYO].tolist(),
         "ef": float(1.0 - lv[es] / lv[0]),
         "rv_ef": float(1.0 - rv.min() / rv[0]),
+        "base_descent_mm": shift.tolist(),
+        "twist_deg": np.degrees(twist).tolist(),
         "height_cm": round(p["height_cm"], 1),
         "weight_kg": round(p["weight_kg"], 1),
     }
-    return frames, affine, info
+    return frames, affines, info
 
 
 def write_acdc_subject(folder: Path, patient_id: str, rng: np.random.Generator, n_frames: int = 20,
@@ -217,9 +245,9 @@ def write_acdc_subject(folder: Path, patient_id: str, rng: np.random.Generator, 
     """Draw one beating heart and write it in the ACDC layout: `<folder>/<patient_id>/Info.cfg`
     and `<patient_id>_frameYY_gt.nii.gz` for every frame YY = 01..T (e.g. patient_id
     "patient001"). Returns the patient folder. Byte-identical for the same generator state."""
-    frames, affine, info = biventricular_frames(sample_biventricular_params(rng), n_frames, voxel_mm)
+    frames, affines, info = biventricular_frames(sample_biventricular_params(rng), n_frames, voxel_mm)
     subject = Path(folder) / patient_id
-    for index, labels in enumerate(frames, start=1):
+    for index, (labels, affine) in enumerate(zip(frames, affines), start=1):
         write_bytes(subject / f"{patient_id}_frame{index:02d}_gt.nii.gz", nifti_gz_bytes(labels, affine))
     # Group NOR: the sampled ranges are those of normal subjects.
     cfg = (f"ED: {info['ed_frame']}\nES: {info['es_frame']}\nGroup: NOR\nHeight: {info['height_cm']:.1f}\n"

@@ -69,14 +69,15 @@ WHOLE_HEART_RANGES: dict[str, tuple[float, float]] = {
     "rv_depth_mm": (15.0, 28.0),
     # Half-width of the RV crescent around the LV: wraps ~100-140 deg of the septal circumference.
     "rv_width_mm": (45.0, 60.0),
-    # LA equivalent radius; LA volume 40-80 ml (indexed 16-34 ml/m2) gives radii 21-27 mm.
-    "la_radius_mm": (20.0, 26.0),
+    # LA radius (antero-posterior); with the elongation and what the vessels and the base plane
+    # take, labelled LA volumes of 43-77 ml (measured, 150 seeds), inside the 40-80 ml stated below.
+    "la_radius_mm": (23.5, 27.0),
     # LA left-right elongation: the LA is wider transversely than antero-posteriorly.
-    "la_elongation": (1.0, 1.3),
-    # RA equivalent radius; RA volume 35-70 ml.
-    "ra_radius_mm": (20.0, 26.0),
+    "la_elongation": (1.1, 1.3),
+    # RA radius; with the elongation, labelled RA volumes of 39-66 ml (measured, 150 seeds).
+    "ra_radius_mm": (21.5, 24.0),
     # RA elongation along the caval (superior-inferior) direction.
-    "ra_elongation": (1.0, 1.35),
+    "ra_elongation": (1.05, 1.3),
     # Aortic root radius 12-18 mm (sinus of Valsalva diameter 24-36 mm).
     "aortic_root_radius_mm": (12.0, 18.0),
     # Arch radius relative to the root: the aorta tapers from the sinus to the arch.
@@ -109,6 +110,26 @@ WHOLE_HEART_RANGES: dict[str, tuple[float, float]] = {
     "pa_branch_length_mm": (15.0, 30.0),
     # Branch direction below the transverse axis, toward posterior (LPA arches back over the bronchus).
     "pa_branch_angle_deg": (20.0, 45.0),
+}
+
+
+# Labelled volume of each structure (ml, canonical names), adult end-diastole: the ranges the
+# phantom's parameters are chosen to stay within (tested over seeds).
+WHOLE_HEART_VOLUMES_ML: dict[str, tuple[float, float]] = {
+    # LV end-diastolic volume, CMR normal adults (women and men) ~75-200 ml.
+    "lv": (75.0, 200.0),
+    # LV myocardium: mass 90-210 g at 1.05 g/ml.
+    "myo": (85.0, 200.0),
+    # RV end-diastolic volume, CMR normal adults ~90-250 ml (the RVOT included).
+    "rv": (90.0, 250.0),
+    # LA maximal volume 40-80 ml (CT, appendage excluded).
+    "la": (40.0, 80.0),
+    # RA maximal volume 35-70 ml.
+    "ra": (35.0, 70.0),
+    # Aorta as truncated here (root, ascending, arch): radius 8-18 mm over 100-200 mm.
+    "aorta": (30.0, 130.0),
+    # Pulmonary trunk and the kept stubs of the branches.
+    "pa": (10.0, 45.0),
 }
 
 

@@ -24,6 +24,13 @@ def gz(raw: bytes) -> bytes:
     return gzip.compress(raw, mtime=0)
 
 
+def without_affine(raw: bytes) -> bytes:
+    """Both qform_code and sform_code 0 (bytes 252-255): only pixdim says where voxels are."""
+    out = bytearray(raw)
+    out[252:256] = np.array([0, 0], "<i2").tobytes()
+    return bytes(out)
+
+
 def with_sform(raw: bytes, sform: np.ndarray) -> bytes:
     """NIfTI-1 header: qform_code (int16) at byte 252, sform_code at 254, srow_x/y/z from 280."""
     out = bytearray(raw)
@@ -54,6 +61,14 @@ def main() -> None:
         "float_labels_label.nii.gz": gz(nifti_bytes(labels.astype(np.float32) + 0.25)),
         "labels_absent_label.nii.gz": gz(nifti_bytes(np.where(labels > 0, 7, 0).astype(np.int16))),
         "huge_declared_size_label.nii": huge_header(),
+        # usable, with a warning (or an error where the recipe asks for it)
+        "no_affine_label.nii": without_affine(good),
+        "unmapped_values_label.nii.gz": gz(nifti_bytes(np.where(labels == 0, 0, np.where(np.arange(8) < 4, 500, 7)).astype(np.int16))),
+        # read as labels: every value within 1e-3 of an integer
+        "float_noise_label.nii.gz": gz(nifti_bytes(labels + np.random.default_rng(0).uniform(-1e-5, 1e-5, labels.shape).astype(np.float32))),
+        # an intensity image next to the label maps (no _label in the name, 512 distinct values)
+        "ct_image.nii.gz": gz(nifti_bytes(np.arange(512, dtype=np.int16).reshape(8, 8, 8) - 256)),
+        "Info_no_NbFrame.cfg": b"ED: 1\nES: 5\nGroup: NOR\nHeight: 170.0\nWeight: 70.0\n",
     }
     verts = "\n".join(["0 0 0", "1 0 0", "nan 1 0", "0 0 1"])
     files["nan_vertices.ply"] = (
