@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import meshsar_builder.radar.echo as RE
+import meshsar_builder.radar.facet as RF
 import meshsar_builder.radar.params as RP
 import meshsar_builder.radar.visibility as RV
 from meshsar_builder.radar.imaging import ImageParams, view_images
@@ -58,7 +59,7 @@ def test_facet_integral_matches_quadrature(corners, q):
     tri = np.array(corners).reshape(1, 3, 3)
     area = RV.triangle_geometry(tri)[2][0]
     q = np.array(q)[None]
-    exact = RE.facet_integral(tri, q)[0]
+    exact = RF.facet_integral(tri, q)[0]
     assert abs(exact) <= area * (1 + 1e-12)
     # Phase spread across the facet up to ~50 rad: 64 and 128 sub-triangles per side resolve it.
     assert abs(exact - quadrature(tri, q, 64)[0]) <= 1e-5 * area
@@ -68,12 +69,12 @@ def test_facet_integral_is_the_area_at_normal_incidence_and_continuous_near_it()
     rng = np.random.default_rng(0)
     tri = rng.normal(size=(4, 3, 3)) * 2
     _, normals, areas = RV.triangle_geometry(tri)
-    np.testing.assert_allclose(RE.facet_integral(tri, 5.0 * normals), areas, rtol=1e-14)
+    np.testing.assert_allclose(RF.facet_integral(tri, 5.0 * normals), areas, rtol=1e-14)
     edge = (tri[:, 1] - tri[:, 0]) / np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1, keepdims=True)
     # Tilting q across the series / recursion switch and through nearly coincident corners.
     for tilt in (1e-12, 1e-7, 1e-3, 0.15, 0.3, 0.6, 1.2):
         q = 5.0 * normals + tilt * edge
-        np.testing.assert_allclose(RE.facet_integral(tri, q), quadrature(tri, q, 60), rtol=1e-6)
+        np.testing.assert_allclose(RF.facet_integral(tri, q), quadrature(tri, q, 60), rtol=1e-6)
 
 
 def test_facet_integral_of_an_edge_across_q():
@@ -81,7 +82,7 @@ def test_facet_integral_of_an_edge_across_q():
     tri = np.array([[[0.0, 0, 0], [2.0, 0, 0], [0.7, 1.5, 0]]])
     for qy in (0.0, 1e-9, 1e-4, 2.0, 7.0):
         q = np.array([[0.0, qy, 3.0]]) + np.array([[1e-10, 0, 0]])
-        np.testing.assert_allclose(RE.facet_integral(tri, q), quadrature(tri, q, 60), rtol=1e-6)
+        np.testing.assert_allclose(RF.facet_integral(tri, q), quadrature(tri, q, 60), rtol=1e-6)
 
 
 # ------------------------------------------------------------------ the echo against its reference

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from meshsar_builder.dataset.shards import Shard
 from meshsar_builder.dataset.sources import (
     ACDC_TABLE,
     MMWHS_TABLE,
@@ -20,7 +21,6 @@ from meshsar_builder.dataset.sources import (
     read_label_map,
     read_surface,
 )
-from meshsar_builder.dataset.shards import Shard
 from meshsar_builder.dataset.verify import verify
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.structures import STRUCTURES

@@ -22,7 +22,6 @@ from skimage.morphology import ball
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError, MeshError
 
-
 # Each great vessel and the chamber(s) whose valve it leaves from.
 VALVE_CHAMBERS: dict[str, tuple[str, ...]] = {"aorta": ("lv",), "pa": ("rv",)}
 # Step between the slabs of equal distance from the valve whose centroids trace the centreline.
