@@ -89,7 +89,7 @@ class RegistrationParams:
     distance_samples: int = 20000
     landmark_weight: float = 0.1
     landmark_smoothing: float = 10.0
-    min_label_agreement: float = 0.93
+    min_label_agreement: float = 0.9
 
     def __post_init__(self) -> None:
         if not self.template:
