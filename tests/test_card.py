@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from meshsar_builder.dataset.card import render_views
+from meshsar_builder.dataset.card import fitting_fov, render_views
 from meshsar_builder.radar.params import view_frame
 
 FOV, SIZE = 160.0, 128
@@ -26,3 +26,18 @@ def test_render_puts_a_ball_where_the_image_grid_does(view):
     assert abs(cols.mean() - expect_col) < 1.5 and abs(rows.mean() - expect_row) < 1.5
     # parallel projection at the image scale: the ball's disc is 2 r wide in pixels
     assert (cols.max() - cols.min() + 1) == pytest.approx(16.0 / FOV * SIZE, abs=2)
+
+
+def test_fitting_fov_shows_every_shape_whole_and_never_shrinks():
+    frame = view_frame("anterior")
+    view = dict(zip("uvw", frame))
+    small = trimesh.creation.icosphere(radius=20.0).vertices
+    large = trimesh.creation.box(extents=(200.0, 60.0, 120.0)).vertices
+    assert fitting_fov([small], view, FOV) == FOV
+    fov = fitting_fov([small, large], view, FOV)
+    reach = np.abs(np.c_[large @ frame[0], large @ frame[1]]).max()
+    assert fov / 2 >= reach
+    (img,) = render_views(large, trimesh.creation.box(extents=(200.0, 60.0, 120.0)).faces, None, [view], fov, size=SIZE)
+    lit = img.sum(axis=2) > 30
+    # whole: nothing lit touches the picture's border
+    assert lit.any() and not (lit[0].any() or lit[-1].any() or lit[:, 0].any() or lit[:, -1].any())
