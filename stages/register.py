@@ -7,8 +7,10 @@ made while planning, since every item depends on it, and written as
 `register/template.ply` with `register/template.json`.
 
 Outputs: `register/<item>.ply`, the template's faces and labels on the fitted
-vertices, and a sidecar with the fit report. A fit outside the DESIGN
-thresholds is a named failure, not a silent bad shape.
+vertices, and a sidecar with the fit report (surface distances, per-structure
+label agreement, the label landmarks used). A fit outside the thresholds
+(surface distance, folds, per-structure label agreement) is a named failure,
+not a silent bad shape. Version 2: label-aware matches and label landmarks.
 """
 
 from __future__ import annotations
@@ -83,4 +85,4 @@ def run(ctx: Context, item: Item) -> dict:
     return {"fit": report, **item.data}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

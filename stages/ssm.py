@@ -3,7 +3,9 @@
 One item, `model`, since every sample depends on the model: Procrustes + PCA
 over every registered subject, `ssm/model.npz` (mean, modes, variances,
 template faces, per-vertex labels), `ssm/report.json` (compactness,
-generalisation, specificity, per-subject registration figures), and
+generalisation and specificity per number of modes, vertex to vertex; specificity
+from `ssm.specificity_samples` draws per mode count through the samples' own
+sampler, redraws included; per-subject registration figures), and
 `ssm/samples/<source>-ssmNNNNN.ply` for `ssm.samples` shapes. Each sample is
 drawn from its own seed (recipe seed, stage, sample id), so a sample does not
 change when the sample count does; self-intersecting draws are redrawn and
@@ -73,4 +75,4 @@ def run(ctx: Context, item: Item) -> dict:
             "self_intersection_redraws": redraws}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

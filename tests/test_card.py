@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from meshsar_builder.dataset.card import cycle_plot, render_views
+from meshsar_builder.dataset.card import cycle_plot, fitting_fov, render_views
 from meshsar_builder.radar.params import view_frame
 
 FOV, SIZE = 160.0, 128
@@ -37,3 +37,18 @@ def test_cycle_plot_draws_volumes_and_motion_and_skips_unknown_phases(tmp_path):
     cycle_plot(recs, tmp_path / "cycle.png")
     image = plt.imread(tmp_path / "cycle.png")
     assert image.shape[1] > 1.8 * image.shape[0]  # two panels: volumes, and motion
+
+
+def test_fitting_fov_shows_every_shape_whole_and_never_shrinks():
+    frame = view_frame("anterior")
+    view = dict(zip("uvw", frame))
+    small = trimesh.creation.icosphere(radius=20.0).vertices
+    large = trimesh.creation.box(extents=(200.0, 60.0, 120.0)).vertices
+    assert fitting_fov([small], view, FOV) == FOV
+    fov = fitting_fov([small, large], view, FOV)
+    reach = np.abs(np.c_[large @ frame[0], large @ frame[1]]).max()
+    assert fov / 2 >= reach
+    (img,) = render_views(large, trimesh.creation.box(extents=(200.0, 60.0, 120.0)).faces, None, [view], fov, size=SIZE)
+    lit = img.sum(axis=2) > 30
+    # whole: nothing lit touches the picture's border
+    assert lit.any() and not (lit[0].any() or lit[-1].any() or lit[:, 0].any() or lit[:, -1].any())

@@ -4,6 +4,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from meshsar_builder.geometry.landmarks import face_labels, label_agreement, label_landmarks, structure_name
 from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface, transfer_labels
 from meshsar_builder.geometry.registration import (
     RegistrationParams,
@@ -154,6 +155,9 @@ def test_choose_template_takes_the_median_volume_deterministically():
         ("converge_mm", 0.0),
         ("fold_retries", -1),
         ("fold_stiffening", 1.0),
+        ("landmark_weight", -0.1),
+        ("landmark_smoothing", -1.0),
+        ("min_label_agreement", 1.5),
     ],
 )
 def test_params_reject_bad_values_naming_the_field(field, value):
@@ -230,3 +234,121 @@ def test_fold_guard_keeps_an_overly_soft_schedule_fold_free(vessel_shapes):
     assert report["flipped_faces"] == 0
     assert report["self_intersections"] == 0
     assert report["nricp"]["steps"] == 3
+
+
+# ---------------------------------------------------------------------------------------------
+# Labels: landmarks, agreement, acceptance, and known warps recovered vertex by vertex
+
+
+def test_hemisphere_landmarks_match_the_analytic_centroids_and_ring():
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=20.0)
+    labels = np.where(sphere.vertices[:, 2] > 0, STRUCTURES["la"], STRUCTURES["ra"]).astype(np.uint8)
+    marks = label_landmarks(sphere.vertices, sphere.faces, labels)
+    assert set(marks.keys) == {"centroid:la", "centroid:ra", "ring:la-ra"}
+    points = dict(zip(marks.keys, marks.points(sphere.vertices)))
+    # The area centroid of a hemispherical shell of radius r lies r/2 from the centre.
+    np.testing.assert_allclose(points["centroid:la"], [0, 0, 10.0], atol=0.3)
+    np.testing.assert_allclose(points["centroid:ra"], [0, 0, -10.0], atol=0.3)
+    np.testing.assert_allclose(points["ring:la-ra"], [0, 0, 0], atol=0.3)
+    np.testing.assert_allclose(np.asarray(marks.weights.sum(axis=1)).ravel(), 1.0)
+
+
+def test_face_labels_and_label_agreement_match_naive_loops():
+    rng = np.random.default_rng(5)
+    faces = rng.integers(0, 50, size=(200, 3))
+    labels = rng.integers(1, 4, size=50)
+    naive = [max(labels[f], key=lambda s: (list(labels[f]).count(s), s == labels[f][0])) for f in faces]
+    np.testing.assert_array_equal(face_labels(faces, labels), naive)
+
+    fitted, subject = rng.normal(size=(60, 3)), rng.normal(size=(80, 3))
+    t_labels, s_labels = rng.integers(1, 3, size=60), rng.integers(1, 3, size=80)
+    nearest = [int(np.argmin(np.linalg.norm(subject - p, axis=1))) for p in fitted]
+    agree = t_labels == s_labels[nearest]
+    overall, per = label_agreement(fitted, t_labels, subject, s_labels)
+    assert overall == pytest.approx(agree.mean())
+    for s in (1, 2):
+        assert per[structure_name(s)] == pytest.approx(agree[t_labels == s].mean())
+
+
+def test_accept_names_the_structures_below_the_label_agreement():
+    report = {"mean_mm": 0.1, "p95_mm": 0.3, "flipped_faces": 0, "self_intersections": 0,
+              "label_agreement_by_structure": {"rv": 0.93, "ra": 0.95, "la": 0.99}}
+    with pytest.raises(MeshError, match=r"label agreement < 0.97 for rv 0.930, ra 0.950$"):
+        accept(report, RegistrationParams(min_label_agreement=0.97))
+    accept(report, RegistrationParams(min_label_agreement=0.9))
+
+
+def long_axis_warps(verts: np.ndarray, apex: np.ndarray, base: np.ndarray) -> dict:
+    """The known smooth maps of issue 12, about the long axis apex -> base of `verts` (n, 3).
+
+    twist: 0.3 rad from apex to base; shear: a tangential slide across the axis growing
+    from 0 at the apex to 8 mm at the base; bulge: a Gaussian (sigma 12 mm) outward push of
+    10 % of the local radius at the point farthest from the axis."""
+    axis = (base - apex) / np.linalg.norm(base - apex)
+    along = (verts - apex) @ axis
+    low, high = along.min(), along.max()
+    centre = verts.mean(axis=0)
+    across = np.cross(axis, [0.0, 0.0, 1.0]) if abs(axis[2]) < 0.9 else np.cross(axis, [1.0, 0.0, 0.0])
+    across /= np.linalg.norm(across)
+
+    def height(p):
+        return ((p - apex) @ axis - low) / (high - low)
+
+    def twist(p):
+        angle = 0.3 * height(p)[:, None]
+        r = p - centre
+        parallel = (r @ axis)[:, None] * axis
+        radial = r - parallel
+        return centre + parallel + radial * np.cos(angle) + np.cross(axis, radial) * np.sin(angle)
+
+    def shear(p):
+        return p + 8.0 * height(p)[:, None] * across
+
+    radial = verts - centre - ((verts - centre) @ axis)[:, None] * axis
+    peak = verts[np.argmax(np.linalg.norm(radial, axis=1))]
+    radius = np.linalg.norm(radial, axis=1).max()
+
+    def bulge(p):
+        gauss = np.exp(-np.sum((p - peak) ** 2, axis=1) / (2 * 12.0**2))
+        out = p - centre - ((p - centre) @ axis)[:, None] * axis
+        return p + 0.1 * radius * gauss[:, None] * out / np.linalg.norm(out, axis=1, keepdims=True)
+
+    return {"twist": twist, "shear": shear, "bulge": bulge}
+
+
+def recover_warp(verts, faces, labels, template_vertices, warp, subject_edge_mm):
+    """Register a simplified template of a labelled surface onto its warped, re-tessellated copy.
+
+    Returns the vertex-by-vertex error (template size,) mm against the known map, the report,
+    and the per-structure label agreement of the true correspondence (the template moved by
+    the map itself): nearest-vertex agreement is below 1 even for a perfect fit, since the
+    two tessellations draw each label boundary up to half an edge apart."""
+    t_verts, t_faces = simplify(verts, faces, template_vertices)
+    t_labels = transfer_labels(verts, labels, t_verts)
+    s_verts, s_faces = remesh(warp(verts), faces, RemeshParams(edge_mm=subject_edge_mm))
+    s_labels = transfer_labels(warp(verts), labels, s_verts)
+    fitted, report = register(t_verts, t_faces, s_verts, s_faces, PARAMS, np.random.default_rng(0), t_labels, s_labels)
+    _, truth = label_agreement(warp(t_verts), t_labels, s_verts, s_labels)
+    return np.linalg.norm(fitted - warp(t_verts), axis=1), report, truth
+
+
+@pytest.fixture(scope="module")
+def labelled_blob():
+    sphere = unit_sphere()
+    verts, faces = remesh(blob(sphere.vertices), sphere.faces, RemeshParams(edge_mm=2.0))
+    # Four structures: quadrants about the long (x) axis, split once more along it.
+    quadrant = (verts[:, 1] > 0).astype(int) + 2 * (verts[:, 2] > 0)
+    labels = np.where(verts[:, 0] > 8.0, quadrant + 2, np.where(quadrant < 2, 6, 7)).astype(np.uint8)
+    apex, base = verts[np.argmin(verts[:, 0])], verts[np.argmax(verts[:, 0])]
+    return verts, faces, labels, long_axis_warps(verts, apex, base)
+
+
+@pytest.mark.parametrize("warp", ["twist", "shear", "bulge"])
+def test_labelled_smooth_surface_known_warp_is_recovered_vertex_by_vertex(labelled_blob, warp):
+    verts, faces, labels, warps = labelled_blob
+    error, report, truth = recover_warp(verts, faces, labels, 1500, warps[warp], 2.5)
+    assert error.mean() <= 1.0
+    assert np.percentile(error, 95) <= 2.5
+    for structure, agreement in report["label_agreement_by_structure"].items():
+        assert agreement >= truth[structure] - 0.02, (structure, agreement, truth[structure])
+    accept(report, RegistrationParams(min_label_agreement=min(truth.values()) - 0.02))

@@ -13,6 +13,7 @@ from meshsar_builder.geometry.ssm import (
     generalisation,
     load_model,
     procrustes_align,
+    rigid_fit,
     quality_report,
     sample,
     sample_valid,
@@ -150,12 +151,31 @@ def test_generalisation_drops_to_zero_with_the_true_mode_count(training):
 
 def test_specificity_of_model_samples_is_small_and_reported(model, training):
     shapes, _, _ = training
-    params = SSMParams(specificity_samples=4, distance_samples=500)
-    mean_mm, std_mm = specificity(model, shapes, np.random.default_rng(0), params)
+    params = SSMParams(specificity_samples=20)
+    mean_mm, std_mm, redraws = specificity(model, shapes, np.random.default_rng(0), params)
     # Samples lie in the training span; the nearest of 30 training shapes is a few mm off at most.
-    assert 0.0 < mean_mm < 3.0 and std_mm >= 0.0
+    assert mean_mm.shape == std_mm.shape == (3,)
+    assert np.all((0.0 < mean_mm) & (mean_mm < 3.0)) and np.all(std_mm >= 0.0) and redraws >= 0
     report = quality_report(model, shapes[:10], np.random.default_rng(0), params)
     assert report["modes"] == 3 and len(report["generalisation_mm"]) == 3 and len(report["compactness"]) == 3
+    assert len(report["specificity_curve_mm"]) == 3 and report["specificity_mm"] == report["specificity_curve_mm"][-1]
+
+
+def test_specificity_is_the_naive_nearest_training_distance_of_the_samplers_draws(model, training):
+    """Reference: the same draws through sample_valid (same seed), nearest shape by a plain loop."""
+    shapes, _, _ = training
+    shapes = shapes[:6]
+    params = SSMParams(specificity_samples=5)
+    mean_mm, _, _ = specificity(model, shapes, np.random.default_rng(3), params)
+    rng = np.random.default_rng(3)
+    fitted = [rigid_fit(s, model.mean) for s in shapes]
+    for j in range(1, len(model.variances) + 1):
+        cut = ShapeModel(model.mean, model.modes[:j], model.variances[:j], model.faces, model.total_variance)
+        scores = []
+        for _ in range(params.specificity_samples):
+            verts = sample_valid(cut, rng, params)[1]
+            scores.append(min(float(np.mean([np.linalg.norm(v - t) for v, t in zip(verts, f)])) for f in fitted))
+        assert mean_mm[j - 1] == pytest.approx(np.mean(scores), rel=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -168,7 +188,6 @@ def test_specificity_of_model_samples_is_small_and_reported(model, training):
         ("max_redraws", -1),
         ("procrustes_iterations", 0),
         ("specificity_samples", 0),
-        ("distance_samples", 10),
     ],
 )
 def test_params_reject_bad_values_naming_the_field(field, value):

@@ -75,6 +75,7 @@ def _timed(fn, *args):
 
 def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
     """Seconds per subject for meshing, remeshing and registration; ms per SSM sample (demo settings)."""
+    from meshsar_builder.geometry.meshing import transfer_labels
     from meshsar_builder.geometry.registration import register
     from meshsar_builder.geometry.remesh import remesh, simplify
     from meshsar_builder.geometry.ssm import build_model, sample_valid
@@ -89,12 +90,16 @@ def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
             timings["meshes"].append(t)
             t, (v, f) = _timed(remesh, surf.verts, surf.faces, recipe.remesh)
             timings["remesh"].append(t)
-            remeshed.append((v, f))
-        t_verts, t_faces = simplify(*remeshed[0], recipe.registration.template_vertices)
-        for i, (v, f) in enumerate(remeshed):
-            t, (fitted, report) = _timed(register, t_verts, t_faces, v, f, recipe.registration, item_rng(0, "bench", str(i)))
+            remeshed.append((v, f, transfer_labels(surf.verts, surf.labels, v)))
+        t_verts, t_faces = simplify(*remeshed[0][:2], recipe.registration.template_vertices)
+        t_labels = transfer_labels(remeshed[0][0], remeshed[0][2], t_verts)
+        for i, (v, f, labels) in enumerate(remeshed):
+            # With the vertex labels, as the register stage runs it (label-aware matches, landmarks).
+            t, (fitted, report) = _timed(register, t_verts, t_faces, v, f, recipe.registration,
+                                         item_rng(0, "bench", str(i)), t_labels, labels)
             timings["register"].append(t)
-            fits.append({k: report[k] for k in ("mean_mm", "p95_mm", "flipped_faces", "self_intersections")})
+            fits.append({k: report[k] for k in ("mean_mm", "p95_mm", "flipped_faces", "self_intersections",
+                                                "label_agreement_by_structure")})
             remeshed[i] = fitted
         model = build_model(np.stack(remeshed), t_faces, recipe.ssm.variance)
         rng = np.random.default_rng(0)

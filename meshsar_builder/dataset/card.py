@@ -88,7 +88,8 @@ def gallery(samples: list, index: dict, path: Path) -> None:
                 axes[r, base].set_title(f"{view['name']}\nmesh", fontsize=8)
                 for c, name in enumerate(channels):
                     axes[r, base + 1 + c].set_title(f"{view['name']}\n{name}", fontsize=8)
-        axes[r, 0].set_ylabel(s.sample_id, fontsize=7)
+        # Horizontal, right of the margin: a vertical id is taller than its row and runs into the next.
+        axes[r, 0].set_ylabel(s.sample_id, fontsize=7, rotation=0, ha="right", va="center")
     for ax in axes.ravel():
         ax.set_xticks([])
         ax.set_yticks([])
@@ -98,7 +99,8 @@ def gallery(samples: list, index: dict, path: Path) -> None:
 
 
 def ssm_variance_plot(report: dict, path: Path) -> None:
-    """Variance explained per mode and cumulatively (compactness), with generalisation."""
+    """The standard SSM quality curves against the number of modes: variance explained per mode and
+    cumulatively (compactness); generalisation and specificity (vertex to vertex, mm)."""
     var = np.asarray(report["variances_mm2"])
     frac = var / report["total_variance_mm2"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
@@ -108,26 +110,41 @@ def ssm_variance_plot(report: dict, path: Path) -> None:
     a.set_xlabel("mode")
     a.set_ylabel("variance explained (%)")
     a.legend(fontsize=8)
-    b.plot(modes, report["generalisation_mm"], "o-", color="C0")
-    b.axhline(report["specificity_mm"], color="C2", ls="--", label=f"specificity {report['specificity_mm']:.2f} mm")
+    b.plot(modes, report["generalisation_mm"], "o-", color="C0", label="generalisation (leave-one-out)")
+    b.plot(modes, report["specificity_curve_mm"], "s-", color="C2", label="specificity (nearest training shape)")
     b.set_xlabel("modes used")
-    b.set_ylabel("leave-one-out error (mm)")
+    b.set_ylabel("vertex-to-vertex error (mm)")
     b.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, path)
 
 
+def fitting_fov(shapes: list[np.ndarray], view: dict, fov_mm: float, margin: float = 1.05) -> float:
+    """The field of view (mm) that shows every shape whole from `view`: at least fov_mm.
+
+    shapes : list of (n, 3) mm, centred on the picture's centre; view : {"u", "v", ...}.
+    """
+    u, v = np.asarray(view["u"], float), np.asarray(view["v"], float)
+    reach = max(float(np.abs(np.c_[verts @ u, verts @ v]).max()) for verts in shapes)
+    return max(fov_mm, 2 * margin * reach)
+
+
 def ssm_mode_strip(model, view: dict, fov_mm: float, path: Path, n_modes: int = 3) -> None:
-    """Mean ± 3σ along the first modes, rendered from one view."""
+    """Mean ± 3σ along the first modes, rendered from one view, all at one scale that shows each whole."""
     n_modes = min(n_modes, len(model.variances))
     steps = (-3.0, 0.0, 3.0)
     fig, axes = plt.subplots(n_modes, len(steps), figsize=(2.2 * len(steps), 2.2 * n_modes), squeeze=False)
     centre = (model.mean.min(axis=0) + model.mean.max(axis=0)) / 2
+    shapes = {}
     for m in range(n_modes):
-        for j, k in enumerate(steps):
+        for k in steps:
             coeffs = np.zeros(m + 1)
             coeffs[m] = k * np.sqrt(model.variances[m])
-            (img,) = render_views(model.shape(coeffs) - centre, model.faces, model.labels, [view], fov_mm)
+            shapes[m, k] = model.shape(coeffs) - centre
+    fov_mm = fitting_fov(list(shapes.values()), view, fov_mm)
+    for m in range(n_modes):
+        for j, k in enumerate(steps):
+            (img,) = render_views(shapes[m, k], model.faces, model.labels, [view], fov_mm)
             axes[m, j].imshow(img)
             axes[m, j].set_xticks([])
             axes[m, j].set_yticks([])

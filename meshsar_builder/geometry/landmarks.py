@@ -1,0 +1,138 @@
+"""Structure labels as registration cues: landmarks derived from vertex labels, per-structure agreement.
+
+A landmark is a fixed weighted mean of mesh vertices (a sparse row of weights summing to 1),
+so a fitted template moves its landmarks linearly with its vertices, which is what Amberg's
+landmark term needs. From the labels alone, every mesh gets:
+- `centroid:<s>`: the area-weighted centroid of structure s's surface patch;
+- `ring:<a>-<b>`: the centre of the junction between structures a and b (the mean of the
+  midpoints of the edges from one to the other), e.g. a valve or a vessel ring;
+- `apex`: the mean of the ventricular (lv, myo) vertices within `APEX_BAND_MM` of the one
+  farthest from the centroid of the other structures (the base of the heart).
+Two meshes share the landmarks whose keys both have, so each pair means the same anatomy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from meshsar_builder.geometry.structures import STRUCTURES
+
+NAMES = {value: name for name, value in STRUCTURES.items()}
+VENTRICLE = (STRUCTURES["lv"], STRUCTURES["myo"])
+APEX_BAND_MM = 2.0
+
+
+def structure_name(label: int) -> str:
+    return NAMES.get(int(label), f"label{int(label)}")
+
+
+@dataclass(frozen=True)
+class Landmarks:
+    """keys: (k,) names; weights: (k, n) sparse, rows sum to 1 (landmark points = weights @ verts)."""
+
+    keys: tuple[str, ...]
+    weights: sp.csr_matrix
+
+    def points(self, verts: np.ndarray) -> np.ndarray:
+        """verts (n, 3) -> landmark points (k, 3)."""
+        return np.asarray(self.weights @ verts)
+
+    def select(self, keys: list[str]) -> Landmarks:
+        rows = [self.keys.index(k) for k in keys]
+        return Landmarks(tuple(keys), self.weights[rows])
+
+
+def _vertex_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    corners = verts[faces]
+    face_areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    return np.bincount(faces.ravel(), np.repeat(face_areas / 3.0, 3), minlength=len(verts))
+
+
+def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, min_vertices: int = 10) -> Landmarks:
+    """Landmarks of a labelled surface (see the module docstring).
+
+    verts : (n, 3) float mm, faces : (m, 3) int, labels : (n,) int (0 = unlabelled, skipped).
+    Structures and junctions with fewer than `min_vertices` vertices give no landmark
+    (a few stray vertices have no stable centre).
+    """
+    verts, faces, labels = np.asarray(verts, dtype=np.float64), np.asarray(faces), np.asarray(labels).astype(np.int64)
+    n = len(verts)
+    areas = _vertex_areas(verts, faces)
+    keys, rows = [], []
+
+    def add(key: str, index: np.ndarray, weight: np.ndarray) -> None:
+        keys.append(key)
+        rows.append(sp.csr_matrix((weight / weight.sum(), (np.zeros(len(index), dtype=int), index)), shape=(1, n)))
+
+    present = [s for s in np.unique(labels) if s != 0 and (labels == s).sum() >= min_vertices]
+    for s in present:
+        index = np.flatnonzero(labels == s)
+        add(f"centroid:{structure_name(s)}", index, areas[index])
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    pairs = labels[edges]
+    for i, a in enumerate(present):
+        for b in present[i + 1:]:
+            crossing = np.unique(edges[((pairs[:, 0] == a) & (pairs[:, 1] == b)) | ((pairs[:, 0] == b) & (pairs[:, 1] == a))], axis=0)
+            if len(crossing) >= min_vertices:
+                # Mean of the crossing edges' midpoints: on the boundary itself, not on one side of it.
+                add(f"ring:{structure_name(a)}-{structure_name(b)}", crossing.ravel(), np.ones(crossing.size))
+    ventricle = np.isin(labels, VENTRICLE)
+    base = (labels != 0) & ~ventricle
+    if ventricle.sum() >= min_vertices and base.sum() >= min_vertices:
+        index = np.flatnonzero(ventricle)
+        distance = np.linalg.norm(verts[index] - verts[base].mean(axis=0), axis=1)
+        band = index[distance >= distance.max() - APEX_BAND_MM]
+        add("apex", band, np.ones(len(band)))
+    weights = sp.vstack(rows, format="csr") if rows else sp.csr_matrix((0, n))
+    return Landmarks(tuple(keys), weights)
+
+
+def common_landmarks(a: Landmarks, b: Landmarks) -> tuple[Landmarks, Landmarks]:
+    """The landmarks both sets have, in one order."""
+    keys = [k for k in a.keys if k in b.keys]
+    return a.select(keys), b.select(keys)
+
+
+def face_labels(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(m,) label of each face: the label most of its corners carry (the first corner's on a three-way tie)."""
+    corners = np.asarray(labels)[np.asarray(faces)]
+    second_third = corners[:, 1] == corners[:, 2]
+    return np.where(second_third, corners[:, 1], corners[:, 0])
+
+
+def label_agreement(
+    fitted: np.ndarray, template_labels: np.ndarray, subject_verts: np.ndarray, subject_labels: np.ndarray,
+    min_vertices: int = 10,
+) -> tuple[float, dict[str, float]]:
+    """Overall and per-structure fraction of template vertices whose nearest subject vertex has their label.
+
+    fitted : (n, 3), template_labels : (n,), subject_verts : (p, 3), subject_labels : (p,).
+    Structures with fewer than `min_vertices` template vertices are left out of the
+    per-structure figures (a few stray vertices give no meaningful fraction).
+    """
+    _, nearest = cKDTree(np.asarray(subject_verts, dtype=np.float64)).query(fitted)
+    template_labels = np.asarray(template_labels)
+    agree = template_labels == np.asarray(subject_labels)[nearest]
+    per = {
+        structure_name(s): float(agree[template_labels == s].mean())
+        for s in np.unique(template_labels)
+        if s != 0 and (template_labels == s).sum() >= min_vertices
+    }
+    return float(agree.mean()), per
+
+
+def landmark_warp(points: np.ndarray, source: np.ndarray, target: np.ndarray, smoothing: float) -> np.ndarray:
+    """Move points by the thin-plate spline (with an affine part) that takes landmarks `source` to `target`.
+
+    points : (n, 3), source, target : (k, 3) mm, k >= 4 -> (n, 3). `smoothing` (mm^2 scale of
+    the spline's regulariser) lets the spline miss landmarks that disagree a little (their
+    positions depend on each mesh's label boundaries) rather than bend to them.
+    """
+    from scipy.interpolate import RBFInterpolator
+
+    spline = RBFInterpolator(source, target - source, kernel="thin_plate_spline", smoothing=smoothing, degree=1)
+    return points + spline(points)
