@@ -362,3 +362,18 @@ def test_chebyshev_echo_matches_direct_on_a_phantom_heart(tmp_path):
     args = (verts[surf.faces][seen], vis[seen], RP.aperture_positions(radar, "anterior"), RP.frequencies(radar), radar)
     assert seen.sum() > 1000
     assert relative_error(RE.echo(*args, method="chebyshev"), RE.echo(*args, method="direct")) <= 1e-6
+
+
+def test_noise_alone_draws_no_depth():
+    """A pure-noise volume with its own RMS as the noise level: no pixel is detected, so depth stays 0."""
+    from meshsar_builder.radar.imaging import range_slices, volume_images
+
+    rng = np.random.default_rng(4)
+    images = ImageParams(size=64)
+    freqs = RP.frequencies(RP.RadarParams())
+    slices = len(range_slices(300.0, 160.0, freqs))
+    noise = (rng.standard_normal((slices, 64, 64)) + 1j * rng.standard_normal((slices, 64, 64))) / math.sqrt(2)
+    intensity, depth = volume_images(noise, freqs, 300.0, images, noise_rms=1.0)
+    assert (intensity > 0.1).mean() > 0.9  # the noise is displayed...
+    assert (depth != 0).mean() < 1e-3  # ...but not taken for a surface
+    assert (volume_images(noise, freqs, 300.0, images)[1] != 0).mean() > 0.9  # without the noise level it would be

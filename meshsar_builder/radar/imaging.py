@@ -28,8 +28,12 @@ WINDOWS = ("hann", "none")
 # main lobe sampled at 1/8 of its width is biased by well under 1 % of the
 # resolution (0.3 mm at the default 37.5 mm); at the defaults 35 slices cover z0 +- fov/2.
 SLICES_PER_RESOLUTION = 8
-# Depth is only meaningful where something was imaged (DESIGN section 5).
+# Depth is only meaningful where something was imaged (DESIGN section 5): above this
+# intensity, and this many dB above the RMS of the noise's own image. A pixel's maximum
+# over ~35 slices of pure noise exceeds 12 dB over its RMS with probability ~1e-5, so a
+# 128 x 128 image shows a false depth pixel about once in every few images.
 DEPTH_INTENSITY_FLOOR = 0.1
+DETECTION_MARGIN_DB = 12.0
 
 
 def invalid(field: str, problem: str, value) -> ValueError:
@@ -171,12 +175,14 @@ def view_volume(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.
     return focus(echo, freqs, x_mm, y_mm, u, v, range_slices(z0_mm, images.fov_mm, freqs), images.window)
 
 
-def volume_images(volume: np.ndarray, freqs: np.ndarray, z0_mm: float, images: ImageParams) -> np.ndarray:
+def volume_images(volume: np.ndarray, freqs: np.ndarray, z0_mm: float, images: ImageParams,
+                  noise_rms: float = 0.0) -> np.ndarray:
     """The view's channels (C, H, W) float32 from its complex volume (S, H, W) (view_volume).
 
     `intensity`: max over range of |image| in dB below the view's maximum, clipped to the
     dynamic range, scaled to [0, 1]. `depth`: the w coordinate of that maximum over
-    fov/2, 0 where intensity < 0.1.
+    fov/2, 0 where intensity < 0.1 or the maximum is less than DETECTION_MARGIN_DB above
+    noise_rms, the RMS of the noise's image (same units as volume; 0 without noise).
     """
     d = range_slices(z0_mm, images.fov_mm, freqs)
     peak, distance = peak_range(np.abs(volume).astype(np.float64), d)
@@ -186,7 +192,8 @@ def volume_images(volume: np.ndarray, freqs: np.ndarray, z0_mm: float, images: I
         intensity = np.clip(1 + decibels / images.dynamic_range_db, 0, 1)
     else:
         intensity = np.zeros_like(peak)
-    depth = np.where(intensity >= DEPTH_INTENSITY_FLOOR, (z0_mm - distance) / (images.fov_mm / 2), 0.0)
+    detected = (intensity >= DEPTH_INTENSITY_FLOOR) & (peak >= noise_rms * 10 ** (DETECTION_MARGIN_DB / 20))
+    depth = np.where(detected, (z0_mm - distance) / (images.fov_mm / 2), 0.0)
     channels = {"intensity": intensity, "depth": depth}
     return np.stack([channels[name] for name in images.channels]).astype(np.float32)
 

@@ -32,9 +32,10 @@ FACET_MODELS = ("po", "centroid", "random")
 REFLECTIVITIES = ("lobe", "po")
 PROBES = ("corners", "centre")
 # Noise: the image-domain noise floor's RMS this many dB below the noise-free image's peak,
-# unless the recipe sets snr_db (per raw sample). 25 dB puts the noise floor inside the
-# 40 dB display: a raw SNR of 30 dB left it ~62 dB down, invisible.
-DEFAULT_IMAGE_SNR_DB = 25.0
+# unless the recipe sets snr_db (per raw sample). 30 dB puts the noise floor inside the
+# 40 dB display (a raw SNR of 30 dB left it ~62 dB down, invisible) and leaves the glints
+# within 18 dB of the peak detected for the depth channel (DETECTION_MARGIN_DB).
+DEFAULT_IMAGE_SNR_DB = 30.0
 ECHO_METHODS = ("chebyshev", "direct")
 
 # Offset of a visibility ray's origin along the facet normal: ~100 float32 ulps at

@@ -82,7 +82,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         t2 = time.perf_counter()
         volume = view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images)
         peak = float(np.abs(volume).max())
-        sigma, floor_db = 0.0, None
+        sigma, floor_db, image_noise = 0.0, None, 0.0
         if noisy:
             noise_volume = view_volume(noise, freqs, x_mm, y_mm, radar.z0_mm, images)
             noise_rms = float(np.sqrt(np.mean(np.abs(noise_volume) ** 2)))
@@ -90,8 +90,9 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
             if sigma > 0:
                 volume = volume + np.complex64(sigma) * noise_volume
                 signal = signal + sigma * noise
-                floor_db = 20 * math.log10(peak / (sigma * noise_rms)) if peak > 0 else None
-        sar.append(volume_images(volume, freqs, radar.z0_mm, images))
+                image_noise = sigma * noise_rms
+                floor_db = 20 * math.log10(peak / image_noise) if peak > 0 else None
+        sar.append(volume_images(volume, freqs, radar.z0_mm, images, image_noise))
         t3 = time.perf_counter()
         decimated.append(signal[np.ix_(keep_x, keep_y, keep_f)])
         noise_power = sigma**2
