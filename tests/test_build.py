@@ -195,11 +195,11 @@ def test_full_disk_stops_with_a_clear_error_and_keeps_finished_items(tmp_path, t
 
 def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, tmp_recipe):
     data = nifti_folder(tmp_path / "data", n_good=6)
-    # Copies under other names: enough items that the build is still running when the signal lands, even when
-    # a loaded machine lets this test poll only now and then.
+    # Copies under other names, meshed at 0.25 mm (~2 s an item): the build is still running when the signal
+    # lands, even when a loaded machine lets this test poll only now and then.
     for i in range(6, 12):
         shutil.copy(data / f"good{i % 6}.nii.gz", data / f"good{i}.nii.gz")
-    recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=0.5))
+    recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=0.25))
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(out), "--until", "meshes",
            "--workers", "2"]
