@@ -193,6 +193,11 @@ def test_full_disk_stops_with_a_clear_error_and_keeps_finished_items(tmp_path, t
     assert build(recipe, out, until="meshes").failures == [] and outputs_of(out, "meshes") == kept
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, tmp_recipe):
     data = nifti_folder(tmp_path / "data", n_good=6)
     # Copies under other names, meshed at 0.25 mm (~2 s an item): the build is still running when the signal
@@ -204,14 +209,16 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, tmp_recipe):
     cmd = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(out), "--until", "meshes",
            "--workers", "2"]
     # Its own session, so the SIGINT reaches the build and its workers as a terminal's Ctrl-C would.
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    # Default SIGINT disposition and an empty signal mask, as a shell gives: pytest's own may differ.
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True,
+                            preexec_fn=_default_sigint)
     deadline = time.time() + 120
     while not list((out / "meshes").glob("*.json")) and time.time() < deadline and proc.poll() is None:
         time.sleep(0.01)
     assert proc.poll() is None, "build finished before it could be interrupted"
     os.killpg(proc.pid, signal.SIGINT)
     _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130 and b"rerun the same command to resume" in err
+    assert proc.returncode == 130 and b"rerun the same command to resume" in err, (proc.returncode, err.decode()[-3000:])
     assert not [p for p in out.rglob("*") if TMP_MARK in p.name]
     resumed = build(R.load(recipe), out, until="meshes")
     assert resumed.failures == [] and resumed.summary[1]["skipped"] >= 1
