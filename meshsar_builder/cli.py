@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from pathlib import Path
@@ -55,6 +56,16 @@ def cmd_preview(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from meshsar_builder.bench.suite import PARTS, run
 
+    if args.recipe:
+        if args.part != "pipeline":
+            print("error: --recipe goes with the pipeline part (meshsar bench pipeline --recipe R)", file=sys.stderr)
+            return 2
+        from meshsar_builder.bench.suite import bench_recipe
+
+        result = bench_recipe(Path(args.out), Path(args.recipe), args.workers)
+        print(json.dumps({k: result[k] for k in ("wall_seconds", "target_met", "samples", "samples_per_minute",
+                                                  "failures")}))
+        return 1 if result["failures"] else 0
     parts = list(PARTS) if args.part == "all" else [args.part]
     for part in run(parts, Path(args.out)):
         print(f"{part}: {Path(args.out) / (part + '.json')}")
@@ -147,6 +158,9 @@ def parser() -> argparse.ArgumentParser:
     be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/")
     be.add_argument("part", nargs="?", default="all", choices=[*PARTS, "all"])
     be.add_argument("--out", default="build/bench")
+    be.add_argument("--recipe", help="pipeline only: build this recipe from scratch and time it against the "
+                                     "paper-scale target (writes pipeline-<name>.json)")
+    be.add_argument("--workers", type=int, default=2, help="with --recipe: local worker processes (default 2)")
     be.set_defaults(func=cmd_bench)
     return p
 

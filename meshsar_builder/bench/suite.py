@@ -8,13 +8,18 @@ Parts:
   ms per SSM sample, at the demo recipe's settings on demo phantoms;
 - pipeline: the demo recipe's settings with fewer items, built with 1 and 2
   workers on the local pool and on a Dask LocalCluster: seconds per sample
-  per stage, samples per minute, peak memory, scaling efficiency;
+  per stage, samples per minute, peak memory, scaling efficiency; with a
+  recipe (`--recipe manifests/phantom_full.toml`), one from-scratch build of it
+  against the paper-scale target (bench_recipe);
 - trainer: ms per training step on the CPU at the default and paper sizes (bench_trainer).
 Every part runs its measurements with one BLAS thread, like the stages do.
 """
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -182,6 +187,70 @@ def bench_pipeline(out: Path, runs: tuple = PIPELINE_RUNS) -> dict:
             speedup = one["wall_seconds"] / two["wall_seconds"]
             result["scaling"][backend] = {"speedup_2_workers": speedup, "efficiency_2_workers": speedup / 2}
     write_json(out / "pipeline.json", result)
+    return result
+
+
+# Runs one build in this child process and reports its stage summary and peak memory as JSON on stdout:
+# ru_maxrss of the build process itself and the largest of its (waited-for) worker processes.
+BUILD_REPORT = (
+    "import json, resource, sys, time; from pathlib import Path; "
+    "from meshsar_builder.pipeline.recipe import load; from meshsar_builder.pipeline.runner import build; "
+    "t0 = time.perf_counter(); r = build(load(sys.argv[1]), Path(sys.argv[2]), workers=int(sys.argv[3])); "
+    "print(json.dumps({'wall_seconds': time.perf_counter() - t0, 'summary': r.summary, "
+    "'failures': [f['stage'] + '/' + f['item'] for f in r.failures], "
+    "'peak_rss_kb_build': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
+    "'peak_rss_kb_largest_worker': resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))"
+)
+
+PAPER_SCALE_TARGET_S = 30 * 60
+PAPER_SCALE_SAMPLES = 1200  # 1,000 SSM samples plus 200 frames; smaller builds are not judged by the target
+
+
+def bench_recipe(out: Path, recipe: Path, workers: int = 2) -> dict:
+    """One from-scratch build of `recipe` with `workers` local processes: where the time goes.
+
+    Writes pipeline-<recipe name>.json: wall time against the paper-scale target
+    (30 min; judged only for >= 1,200 samples, else null), samples per minute, per stage its wall seconds, share of the wall,
+    summed item seconds and seconds per item, the radar stage's split into
+    visibility, echo, imaging and the rest (I/O, noise, per-item set-up), and peak
+    memory. The build is kept under out/pipeline-<name>/ for inspection.
+    """
+    name = load(recipe).name
+    build_dir = out / f"pipeline-{name}"
+    if build_dir.exists():  # a bench measures a build from scratch
+        shutil.rmtree(build_dir)
+    proc = subprocess.run([sys.executable, "-c", BUILD_REPORT, str(recipe), str(build_dir), str(workers)],
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"bench build of {recipe} failed:\n{proc.stderr[-4000:]}")
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    wall = report["wall_seconds"]
+    stages = {}
+    for row in report["summary"]:
+        records = [read_json(p) for p in sorted((build_dir / row["stage"]).glob("*.json"))]
+        item_seconds = [rec["seconds"] for rec in records if "seconds" in rec and "item" in rec]
+        stages[row["stage"]] = {"items": row["items"], "failed": row["failed"], "wall_seconds": row["seconds"],
+                                "share_of_wall": row["seconds"] / wall, "item_seconds_sum": float(np.sum(item_seconds)),
+                                "seconds_per_item": float(np.mean(item_seconds)) if item_seconds else 0.0}
+    radar = {"visibility": 0.0, "echo": 0.0, "imaging": 0.0, "item_seconds": 0.0}
+    for rec in map(read_json, sorted((build_dir / "radar").glob("*.json"))):
+        radar["item_seconds"] += rec.get("seconds", 0.0)
+        for view in rec.get("views", []):
+            for part in ("visibility", "echo", "imaging"):
+                radar[part] += view["seconds"][part]
+    radar["rest"] = radar["item_seconds"] - radar["visibility"] - radar["echo"] - radar["imaging"]
+    samples = read_json(build_dir / "index.json")["n_samples"]
+    result = {
+        "recipe": str(recipe), "workers": workers, "cpu_count": os.cpu_count(),
+        "wall_seconds": wall, "outside_stages_seconds": wall - sum(row["seconds"] for row in report["summary"]),
+        "target_seconds": PAPER_SCALE_TARGET_S,
+        "target_met": wall <= PAPER_SCALE_TARGET_S if samples >= PAPER_SCALE_SAMPLES else None,
+        "samples": samples, "samples_per_minute": 60 * samples / wall, "failures": report["failures"],
+        "peak_rss_mb_build": report["peak_rss_kb_build"] / 1024,
+        "peak_rss_mb_largest_worker": report["peak_rss_kb_largest_worker"] / 1024,
+        "stages": stages, "radar_seconds_summed": radar,
+    }
+    write_json(out / f"pipeline-{name}.json", result)
     return result
 
 
