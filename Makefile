@@ -11,7 +11,7 @@ PYTEST_ARGS ?=
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install dataset test test-fast clean splits verify bench train
+.PHONY: install dataset test test-fast clean splits verify bench train ablate
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -52,3 +52,10 @@ CONFIG ?= manifests/train/default.toml
 train: $(STAMP)
 	$(VENV)/bin/meshsar train $(CONFIG) --data $(OUT) --split seed-$(SEED)
 	$(VENV)/bin/meshsar evaluate $(OUT)/runs/$(basename $(notdir $(CONFIG)))-seed-$(SEED) --data $(OUT) --split seed-$(SEED)
+
+SEEDS ?= 0,1,2
+ABLATE_EPOCHS ?=
+
+# The radar-loss / pooling / view ablation over seeds on OUT (meshsar ablate); ABLATE_EPOCHS shortens every run.
+ablate: $(STAMP)
+	$(VENV)/bin/meshsar ablate $(CONFIG) --data $(OUT) --split seed-$(SEED) --seeds $(SEEDS) $(if $(ABLATE_EPOCHS),--epochs $(ABLATE_EPOCHS))

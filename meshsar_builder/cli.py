@@ -88,6 +88,19 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from meshsar_builder.trainer.ablate import VARIANTS, ablate, markdown
+
+    try:
+        seeds = tuple(int(s) for s in args.seeds.split(","))
+    except ValueError:
+        print(f"error: --seeds: expected comma-separated integers, got {args.seeds!r}", file=sys.stderr)
+        return 2
+    variants = tuple(args.variants.split(",")) if args.variants else VARIANTS
+    print(markdown(ablate(args.config, args.data, args.split, seeds, variants, args.epochs, args.device, args.out)))
+    return 0
+
+
 def cmd_predict(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.predict import predict
 
@@ -153,6 +166,17 @@ def parser() -> argparse.ArgumentParser:
     pr.add_argument("--gallery", type=int, help="samples drawn in gallery.png (default all)")
     add_run_options(pr)
     pr.set_defaults(func=cmd_predict)
+    ab = sub.add_parser("ablate", help="train and evaluate a config's ablation variants over seeds: mean ± std table")
+    ab.add_argument("config", help="trainer config TOML, e.g. manifests/train/default.toml")
+    ab.add_argument("--data", required=True, help="built dataset folder")
+    ab.add_argument("--split", default="seed-0")
+    ab.add_argument("--seeds", default="0,1,2", help="comma-separated trainer seeds (default 0,1,2)")
+    ab.add_argument("--variants", help="comma-separated subset of default,no_radar,max_only,single_view (default all)")
+    ab.add_argument("--epochs", type=int, help="shorten every run to this many epochs (warm-up, ramp and "
+                                               "intervals scale with it; default: the config's)")
+    ab.add_argument("--device", choices=["cpu", "cuda", "auto"], help="override [run] device")
+    ab.add_argument("--out", help="folder (default DATA/ablations/<config name>-<split>[-e<epochs>])")
+    ab.set_defaults(func=cmd_ablate)
     from meshsar_builder.bench.suite import PARTS
 
     be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/")
