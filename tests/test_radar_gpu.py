@@ -1,0 +1,116 @@
+"""The radar on a torch device (radar/gpu.py) against the numba echo and numpy imaging, and its plumbing.
+
+CI has no GPU: the torch path runs on device "cpu" there, which checks the same code a
+CUDA device runs; the "cuda" cases run where torch sees a GPU and are skipped elsewhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import meshsar_builder.radar.echo as RE  # noqa: E402
+import meshsar_builder.radar.gpu as RG  # noqa: E402
+import meshsar_builder.radar.params as RP  # noqa: E402
+import meshsar_builder.radar.render as RR  # noqa: E402
+import meshsar_builder.radar.visibility as RV  # noqa: E402
+from meshsar_builder.pipeline import recipe as R  # noqa: E402
+from meshsar_builder.pipeline.errors import MeshsarError  # noqa: E402
+from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images  # noqa: E402
+
+from .conftest import MANIFESTS  # noqa: E402
+
+NO_CUDA = "no CUDA device: torch.cuda.is_available() is false"
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason=NO_CUDA))]
+# A 160 mm aperture like the default's, sampled coarsely (aliased, which both paths share),
+# and half the sweep: the demo heart's ~6,000 visible facets still make every sum long.
+RADAR = dict(aperture=(10, 10), step_mm=16.0, n_samples=32, echo_decimation=(1, 1, 1))
+IMAGES = ImageParams(size=48)
+TOLERANCE = 1e-5  # relative L2, torch path against the CPU production path
+
+
+def relative(got, expected) -> float:
+    return float(np.linalg.norm(np.asarray(got) - expected) / np.linalg.norm(expected))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread: on a shared 2-core machine two spinning threads ran the sums ~10x slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    from meshsar_builder.bench.suite import demo_mesh
+
+    verts, faces = demo_mesh()
+    return verts, faces, RV.embree_intersector(verts, faces)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("facet", ["po", "centroid", "random"])
+def test_echo_and_images_match_the_cpu_path_on_the_demo_heart(demo, facet, device):
+    verts, faces, intersector = demo
+    radar = RP.RadarParams(**RADAR, facet=facet)
+    points = RV.scatterer_points(verts, faces, facet, np.random.default_rng(3))
+    freqs, (x, y) = RP.frequencies(radar), RP.aperture_axes(radar)
+    for view in radar.views:
+        vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view), intersector)
+        seen = vis > 0
+        args = (verts[faces][seen], vis[seen], RP.aperture_positions(radar, view), freqs, radar)
+        cpu = RE.echo(*args, points=points[seen])
+        got = RG.echo(*args, points=points[seen], device=device)
+        assert got.dtype == np.complex128 and got.shape == cpu.shape
+        assert relative(got, cpu) < TOLERANCE, (view, relative(got, cpu))
+        cpu_volume = view_volume(cpu.reshape(10, 10, -1), freqs, x, y, radar.z0_mm, IMAGES)
+        volume = RG.view_volume(got.reshape(10, 10, -1), freqs, x, y, radar.z0_mm, IMAGES, device=device)
+        assert volume.dtype == np.complex64 and volume.shape == cpu_volume.shape
+        assert relative(volume, cpu_volume) < TOLERANCE, (view, relative(volume, cpu_volume))
+        images = volume_images(volume, freqs, radar.z0_mm, IMAGES)
+        cpu_images = volume_images(cpu_volume, freqs, radar.z0_mm, IMAGES)
+        for channel in range(len(IMAGES.channels)):
+            assert relative(images[channel], cpu_images[channel]) < TOLERANCE, (view, channel)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_chunks_over_antennas_and_facets_sum_to_one_pass(monkeypatch, device):
+    """A chunk budget far below one antenna's facets splits both axes; the sum is the same to rounding."""
+    rng = np.random.default_rng(0)
+    tri = rng.normal(size=(50, 3, 3)) * 3 + rng.normal(size=(50, 1, 3)) * 30
+    radar = RP.RadarParams(aperture=(4, 3), echo_decimation=(1, 1, 1), n_samples=16)
+    args = (tri, rng.random(50), RP.aperture_positions(radar, "left"), RP.frequencies(radar), radar)
+    whole = RG.echo(*args, device=device)
+    monkeypatch.setattr(RG, "CPU_CHUNK_BYTES", RG.BYTES_PER_TERM * 16 * 7)  # 7 facets of one antenna
+    monkeypatch.setattr(RG, "DEVICE_CHUNK_BYTES", RG.BYTES_PER_TERM * 16 * 7)
+    assert relative(RG.echo(*args, device=device), whole) < 1e-14
+    assert relative(whole, RE.echo(*args, method="direct")) < 1e-12
+    assert not RG.echo(tri[:0], np.ones(0), *args[2:], device=device).any()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_render_sample_on_the_torch_path_adds_the_same_noise(monkeypatch, device):
+    """The whole sample, noise included: it is drawn on the CPU from the same generator, so only rounding differs."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(3, radius=40.0)
+    radar = RP.RadarParams(aperture=(12, 12), step_mm=12.0, n_samples=24, echo_decimation=(2, 2, 2))
+    images = ImageParams(size=32)
+    cpu = RR.render_sample(mesh.vertices, mesh.faces, radar, images, np.random.default_rng(7))
+    if device == "cpu":  # the torch functions, on the CPU: what device = "cuda" runs, elsewhere
+        monkeypatch.setattr(RR, "view_functions", lambda device: RG.view_functions("cpu"))
+    else:
+        radar = dataclasses.replace(radar, device=device)
+    got = RR.render_sample(mesh.vertices, mesh.faces, radar, images, np.random.default_rng(7))
+    assert relative(got["echo"], cpu["echo"]) < TOLERANCE  # noise included: the same draws
+    assert relative(got["sar"].astype(np.float32), cpu["sar"].astype(np.float32)) < 1e-3  # float16 steps
+    for mine, theirs in zip(got["views"], cpu["views"]):
+        assert mine["visible_facets"] == theirs["visible_facets"]
+        np.testing.assert_allclose(mine["noise_power"], theirs["noise_power"], rtol=1e-5)
+        np.testing.assert_allclose(mine["noise_floor_db"], theirs["noise_floor_db"], atol=1e-4)
