@@ -114,3 +114,83 @@ def test_render_sample_on_the_torch_path_adds_the_same_noise(monkeypatch, device
         assert mine["visible_facets"] == theirs["visible_facets"]
         np.testing.assert_allclose(mine["noise_power"], theirs["noise_power"], rtol=1e-5)
         np.testing.assert_allclose(mine["noise_floor_db"], theirs["noise_floor_db"], atol=1e-4)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA: the error is for machines without")
+def test_cuda_without_cuda_fails_before_the_build_starts(tmp_path, capsys):
+    from meshsar_builder.cli import main
+    from meshsar_builder.pipeline.runner import build
+
+    with pytest.raises(MeshsarError, match=r"\[radar\] device.*--device.*'cuda': CUDA is not available"):
+        RG.check_device("cuda")
+    recipe = R.override(R.load(MANIFESTS / "smoke.toml"), "radar", "device", "cuda", "--device")
+    with pytest.raises(MeshsarError, match="CUDA is not available"):
+        build(recipe, tmp_path / "out")
+    assert not (tmp_path / "out" / "sources").exists()  # no stage ran
+    assert main(["build", str(MANIFESTS / "smoke.toml"), "--out", str(tmp_path / "cli"), "--device", "cuda"]) == 2
+    assert "--device" in capsys.readouterr().err
+    # a stage that does not run needs no GPU
+    assert build(recipe, tmp_path / "sources-only", until="sources").failures == []
+
+
+def test_a_cuda_index_beyond_the_devices_is_named():
+    if not torch.cuda.is_available():
+        pytest.skip(NO_CUDA)
+    with pytest.raises(MeshsarError, match="cuda:99.*sees"):
+        RG.check_device("cuda:99")
+
+
+def test_the_radar_stage_keeps_cpu_hashes_and_tags_gpu_items():
+    from stages import radar as stage
+
+    from meshsar_builder.pipeline.runner import Context
+
+    recipe = R.load(MANIFESTS / "smoke.toml")
+    ctx = Context(out=MANIFESTS, recipe=recipe)
+    params = stage.item_params(ctx)
+    assert "device" not in params and "device" not in params["radar"]  # the hash a CPU build had before
+    assert stage.resources(ctx) is None
+    for device in ("cuda", "cuda:1"):
+        gpu = Context(out=MANIFESTS, recipe=R.override(recipe, "radar", "device", device, "--device"))
+        assert stage.item_params(gpu) == {**params, "device": "cuda"}
+        assert stage.resources(gpu) == {"GPU": 1}
+
+
+# ------------------------------------------------------------------ Dask: GPU items go to GPU workers
+
+
+def _where(ctx, item):
+    from distributed import get_worker
+
+    return {"worker": get_worker().name}
+
+
+def _refuse(ctx, dask_worker=None):  # Client.run hands the worker to a `dask_worker` parameter
+    raise MeshsarError(f"checked on {dask_worker.name}")
+
+
+def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_path):
+    """A cluster of a CPU worker and a GPU=1 worker: tagged items all run on the latter; checks run there."""
+    from distributed import Scheduler, SpecCluster, Worker
+
+    from meshsar_builder.pipeline.runner import Context, DaskPool, Item, Results, Stage, check_stage, run_stage
+
+    workers = {"cpu": {"cls": Worker, "options": {"nthreads": 1}},
+               "gpu": {"cls": Worker, "options": {"nthreads": 1, "resources": {"GPU": 1}}}}
+    scheduler = {"cls": Scheduler, "options": {"dashboard_address": None, "host": "127.0.0.1"}}
+    ctx = Context(out=tmp_path, recipe=R.load(MANIFESTS / "smoke.toml"))
+    items = lambda ctx, results: [Item(f"i{n}", ()) for n in range(8)]  # noqa: E731
+    tagged = Stage(name="tagged", version=1, plan=items, run=_where, resources=lambda ctx: {"GPU": 1}, check=_refuse)
+    needs_tpu = Stage(name="tpu", version=1, plan=items, run=_where, resources=lambda ctx: {"TPU": 1})
+    with SpecCluster(workers=workers, scheduler=scheduler) as cluster:
+        pool = DaskPool(cluster.scheduler_address)
+        try:
+            results = Results()
+            run_stage(ctx, tagged, results, pool)
+            assert {rec["worker"] for rec in results.of("tagged").values()} == {"gpu"}
+            with pytest.raises(MeshsarError, match="checked on gpu"):  # the check ran where the items go
+                check_stage(ctx, tagged, pool)
+            with pytest.raises(MeshsarError, match=r"resources \{'TPU': 1\}.*--resources \"TPU=1\""):
+                check_stage(ctx, needs_tpu, pool)
+        finally:
+            pool.close()
