@@ -194,3 +194,29 @@ def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_
                 check_stage(ctx, needs_tpu, pool)
         finally:
             pool.close()
+
+
+def test_bench_gpu_row_is_skipped_with_a_reason_or_filled(monkeypatch):
+    """`meshsar bench radar`'s GPU row: a reason without CUDA; its numbers (here with "cuda" routed to the CPU)."""
+    import trimesh
+
+    from meshsar_builder.bench import radar as BR
+
+    mesh = trimesh.creation.icosphere(2, radius=40.0)
+    verts, faces = mesh.vertices, mesh.faces
+    radar, images = RP.RadarParams(aperture=(6, 6), step_mm=20.0, n_samples=16, echo_decimation=(1, 1, 1),
+                                   views=("anterior", "left")), ImageParams(size=16)
+    intersector = RV.embree_intersector(verts, faces)
+    cpu_views = [BR.view_seconds(verts, faces, intersector, radar, images, view) for view in radar.views]
+    if not torch.cuda.is_available():
+        assert BR.gpu_row(verts, faces, radar, images, cpu_views) == {"skipped": NO_CUDA}
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(RG, "check_device", lambda device: torch.device("cpu"))
+        for name, value in (("get_device_name", "cpu"), ("reset_peak_memory_stats", None),
+                            ("max_memory_allocated", 0)):
+            monkeypatch.setattr(torch.cuda, name, lambda *args, value=value: value)
+    row = BR.gpu_row(verts, faces, radar, images, cpu_views)
+    assert [v["view"] for v in row["views"]] == list(radar.views)
+    for view in row["views"]:
+        assert view["echo_relative_error"] < TOLERANCE and view["volume_relative_error"] < TOLERANCE
+        assert view["seconds_view"] > view["seconds_echo"] > 0 and view["speedup_view"] > 0
