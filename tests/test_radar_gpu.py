@@ -220,3 +220,15 @@ def test_bench_gpu_row_is_skipped_with_a_reason_or_filled(monkeypatch):
     for view in row["views"]:
         assert view["echo_relative_error"] < TOLERANCE and view["volume_relative_error"] < TOLERANCE
         assert view["seconds_view"] > view["seconds_echo"] > 0 and view["speedup_view"] > 0
+
+
+@pytest.mark.slow  # starts a process cluster: ~10-20 s on 2 cores
+def test_a_local_dask_cluster_can_take_gpu_items():
+    """`--scheduler local:N` workers share this machine's GPUs, so each declares one (a CUDA build can use them)."""
+    from meshsar_builder.pipeline.runner import DaskPool
+
+    pool = DaskPool("local:1")
+    try:
+        assert [have.get("GPU") for have in pool.worker_resources().values()] == [1]
+    finally:
+        pool.close()

@@ -228,8 +228,11 @@ class DaskPool:
 
         if scheduler.startswith("local:"):
             n = int(scheduler.split(":", 1)[1])
+            # Every worker of a LocalCluster runs on this machine and sees its GPUs, as a local
+            # pool's would: each declares one, so items that ask for a GPU (a CUDA radar) run
+            # here too, one per worker; Stage.check still tests that CUDA is really there.
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                        dashboard_address=None)
+                                        dashboard_address=None, resources={"GPU": 1})
             self.client = Client(self.cluster)
         else:
             self.cluster = None
