@@ -59,7 +59,7 @@ BYTES_PER_SLICE_ELEMENT = 48
 WHERE = 'radar device (recipe key [radar] device, or meshsar build --device)'
 
 
-def check_device(device: str) -> "torch.device":
+def check_device(device: str) -> torch.device:
     """The torch device for a radar `device` string, or MeshsarError saying why it cannot be used.
 
     Raised where the build starts (stages.radar's check), so a missing GPU is named before
@@ -83,7 +83,7 @@ def check_device(device: str) -> "torch.device":
     return dev
 
 
-def chunk_bytes(dev: "torch.device") -> int:
+def chunk_bytes(dev: torch.device) -> int:
     """The temporaries' budget of one chunk on dev (see DEVICE_CHUNK_BYTES)."""
     return CPU_CHUNK_BYTES if dev.type == "cpu" else DEVICE_CHUNK_BYTES
 
@@ -154,12 +154,12 @@ def focus(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarra
         d = real(np.asarray(d_mm, dtype=np.float64))
         focused = torch.empty((len(d), px, py), dtype=torch.complex128, device=dev)
         step = max(1, chunk_bytes(dev) // (BYTES_PER_SLICE_ELEMENT * px * py * nf))
+        one = real(np.ones(()))  # the phasors' modulus
         for s0, s1 in _chunks(len(d), step):  # exp(-j kz d), each slice's own exact phase
-            phasor = torch.polar(torch.ones((), dtype=torch.float64, device=dev), -kz[None] * d[s0:s1, None, None, None])
-            focused[s0:s1] = (spectrum[None] * phasor).sum(-1)
+            focused[s0:s1] = (spectrum[None] * torch.polar(one, -kz[None] * d[s0:s1, None, None, None])).sum(-1)
         # The FFT's phase reference is antenna 0, hence the x_mm[0], y_mm[0] shifts.
-        to_u = torch.polar(real(np.ones(())), real(np.outer(np.asarray(u_mm) - x_mm[0], kx)))  # (W, px)
-        to_v = torch.polar(real(np.ones(())), real(np.outer(np.asarray(v_mm) - y_mm[0], ky)))  # (H, py)
+        to_u = torch.polar(one, real(np.outer(np.asarray(u_mm) - x_mm[0], kx)))  # (W, px)
+        to_v = torch.polar(one, real(np.outer(np.asarray(v_mm) - y_mm[0], ky)))  # (H, py)
         volume = to_v @ focused.transpose(1, 2) @ to_u.T
     return volume.to(torch.complex64).cpu().numpy()
 
