@@ -177,7 +177,7 @@ def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_
 
     workers = {"cpu": {"cls": Worker, "options": {"nthreads": 1}},
                "gpu": {"cls": Worker, "options": {"nthreads": 1, "resources": {"GPU": 1}}}}
-    scheduler = {"cls": Scheduler, "options": {"dashboard_address": None, "host": "127.0.0.1"}}
+    scheduler = {"cls": Scheduler, "options": {"dashboard_address": ":0", "host": "127.0.0.1"}}
     ctx = Context(out=tmp_path, recipe=R.load(MANIFESTS / "smoke.toml"))
     items = lambda ctx, results: [Item(f"i{n}", ()) for n in range(8)]  # noqa: E731
     tagged = Stage(name="tagged", version=1, plan=items, run=_where, resources=lambda ctx: {"GPU": 1}, check=_refuse)
