@@ -16,6 +16,8 @@ def cmd_build(args: argparse.Namespace) -> int:
     from meshsar_builder.pipeline.runner import build, format_summary
 
     recipe = recipe_mod.load(args.recipe)
+    if args.device is not None:
+        recipe = recipe_mod.override(recipe, "radar", "device", args.device, "--device")
     out = Path(args.out) if args.out else Path("build") / recipe.name
     results = build(recipe, out, workers=args.workers, until=args.until, force=tuple(args.force),
                     scheduler=args.scheduler)
@@ -127,6 +129,8 @@ def parser() -> argparse.ArgumentParser:
                         "worker processes (default $MESHSAR_SCHEDULER; unset: local processes)")
     b.add_argument("--until", metavar="STAGE", help="stop after this stage")
     b.add_argument("--force", metavar="STAGE", action="append", default=[], help="rerun every item of STAGE (repeatable)")
+    b.add_argument("--device", metavar="DEVICE", help="where the radar stage's echo and imaging run: cpu, cuda or "
+                                                      "cuda:N (sets [radar] device; default: the recipe's, cpu)")
     b.set_defaults(func=cmd_build)
     s = sub.add_parser("splits", help="write splits/seed-S.json from the index (shards are not read)")
     s.add_argument("out", help="built dataset folder")

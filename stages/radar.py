@@ -47,9 +47,36 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
     return out
 
 
+def item_params(ctx: Context) -> dict:
+    """What a sample's outputs depend on besides its mesh: the radar and image parameters and the seed.
+
+    `device` is left out for "cpu", so the parameter hash of a CPU build is the one it had
+    before the key existed (built samples stay up to date); a CUDA build adds "device":
+    "cuda" (its bits differ by rounding), whatever the device index, which changes no bits.
+    """
+    radar = dataclasses.asdict(ctx.recipe.radar)
+    device = radar.pop("device")
+    params = {"radar": radar, "images": dataclasses.asdict(ctx.recipe.images), "seed": ctx.recipe.seed}
+    if device != "cpu":
+        params["device"] = device.split(":")[0]
+    return params
+
+
+def resources(ctx: Context) -> dict | None:
+    """On Dask, a CUDA radar's items go only to workers started with `--resources GPU=1`."""
+    return {"GPU": 1} if ctx.recipe.radar.device != "cpu" else None
+
+
+def check(ctx: Context) -> None:
+    """Fail before the build starts when [radar] device (or --device) names a GPU this machine cannot use."""
+    if ctx.recipe.radar.device != "cpu":
+        from meshsar_builder.radar.gpu import check_device  # torch: only for a GPU radar
+
+        check_device(ctx.recipe.radar.device)
+
+
 def plan(ctx: Context, results: Results) -> list[Item]:
-    params = {"radar": dataclasses.asdict(ctx.recipe.radar), "images": dataclasses.asdict(ctx.recipe.images),
-              "seed": ctx.recipe.seed}
+    params = item_params(ctx)
     return [Item(sid, (f"{sid}.npz",), inputs=(path,), params=params, data=meta)
             for sid, path, meta in dataset_meshes(ctx, results)]
 
@@ -63,8 +90,8 @@ def run(ctx: Context, item: Item) -> dict:
         np.savez(tmp, sar=out["sar"], echo=out["echo"], center_mm=center.astype(np.float32))
     # The image noise floor per view travels with the sample (shards' meta, the card).
     meta = {**item.data, "noise_floor_db": [v["noise_floor_db"] for v in out["views"]]}
-    return {"meta": meta, "center_mm": center.tolist(), "views": out["views"]}
+    return {"meta": meta, "center_mm": center.tolist(), "views": out["views"], "device": ctx.recipe.radar.device}
 
 
 # Version 2: the physical-optics facet echo and the image-domain noise floor (image_snr_db).
-STAGE = Stage(name=NAME, version=2, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run, resources=resources, check=check)

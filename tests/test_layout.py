@@ -23,9 +23,10 @@ ALLOWED = {
     "trainer": {"pipeline", "geometry", "radar", "dataset"},
 }
 # Third-party imports a domain must not take (a geometry user should not load torch), and the
-# modules exempted: the differentiable echo and the PyTorch readers.
+# modules exempted: the differentiable echo, the GPU radar (imported only for a CUDA device)
+# and the PyTorch readers.
 FORBIDDEN_EXTERNAL = {domain: {"torch"} for domain in ("pipeline", "geometry", "radar", "dataset")}
-TORCH_ALLOWED = {("radar", "differentiable"), ("dataset", "readers")}
+TORCH_ALLOWED = {("radar", "differentiable"), ("radar", "gpu"), ("dataset", "readers")}
 MAX_LINES = 600
 
 

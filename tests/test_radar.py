@@ -40,6 +40,8 @@ def ellipsoid(subdivisions=2):
     ("echo_decimation", (5, 5, 100), "echo_decimation: entry 2"),
     ("aperture", (80,), "aperture: must be 2 integers"),
     ("kappa", 1.5, "kappa: must lie in [0, 1]"),
+    ("device", "gpu", 'device: must be "cpu", "cuda" or "cuda:N"'),
+    ("device", "cuda:", "device: must be"),
 ])
 def test_bad_parameters_name_the_field(field, value, words):
     with pytest.raises(ValueError, match=words.replace("[", r"\[").replace("]", r"\]")):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -67,6 +69,9 @@ def test_defaults_resolved():
         (MINIMAL + "[meshing]\nvessel_length_mm = { heart = 30 }\n", r"\[meshing\] vessel_length_mm: unknown vessel 'heart'"),
         (MINIMAL + "[meshing]\nvessel_length_mm = { aorta = -5 }\n", r"\[meshing\] vessel_length_mm: aorta must be in \(0, 1000\) mm"),
         (MINIMAL + '[meshing]\nvessel_length_mm = { pa = "long" }\n', r"\[meshing\] vessel_length_mm.pa: expected a number"),
+        (MINIMAL + '[radar]\ndevice = "gpu"\n', r'\[radar\] device: must be "cpu", "cuda" or "cuda:N"'),
+        (MINIMAL + '[radar]\ndevice = "cuda:x"\n', r'\[radar\] device: must be "cpu", "cuda" or "cuda:N"'),
+        (MINIMAL + '[radar]\ndevice = 0\n', r"\[radar\] device: expected a string"),
     ],
 )
 def test_malformed_recipe_names_file_and_key(tmp_recipe, body, message):
@@ -146,3 +151,17 @@ def test_any_source_entry_parses_or_raises_recipe_error(entries, kind):
         (spec,) = r.sources
         if spec.kind == "shape_model":
             assert spec.samples >= 1 and spec.mean and spec.modes and spec.variances and spec.use == "ssm"
+
+
+def test_radar_device_from_the_recipe_or_the_command_line():
+    assert R.parse(MINIMAL).radar.device == "cpu"
+    assert R.parse(MINIMAL + '[radar]\ndevice = "cuda:1"\n').radar.device == "cuda:1"
+    recipe = R.parse(MINIMAL)
+    changed = R.override(recipe, "radar", "device", "cuda", "--device")
+    # only that key changes; the recipe's text and digest stay the file's
+    assert changed.radar == dataclasses.replace(recipe.radar, device="cuda") and recipe.radar.device == "cpu"
+    assert (changed.text, changed.sha256, changed.meshing) == (recipe.text, recipe.sha256, recipe.meshing)
+    with pytest.raises(RecipeError, match=r'^--device: device: must be "cpu", "cuda" or "cuda:N".*\'tpu\''):
+        R.override(recipe, "radar", "device", "tpu", "--device")
+    with pytest.raises(RecipeError, match=r"--device: expected a string"):
+        R.override(recipe, "radar", "device", 1, "--device")

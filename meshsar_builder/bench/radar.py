@@ -1,4 +1,5 @@
-"""Radar benchmark: seconds per view on one core for both facet models, production echo vs direct, Embree rays.
+"""Radar benchmark: seconds per view on one core for both facet models, production echo vs direct, Embree rays,
+and the GPU radar's seconds per view against that core (skipped, with the reason, without CUDA).
 
 run() measures in a child process started with OMP/OPENBLAS/MKL/NUMBA thread counts
 of 1 (they are read once, when numpy and numba load) and pinned to one CPU with
@@ -67,10 +68,57 @@ def view_seconds(verts, faces, intersector, radar, images, view) -> dict:
     positions = RP.aperture_positions(radar, view)
     t_echo, signal = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar))
     signal = signal.reshape(*radar.aperture, radar.n_samples)
-    t_img, _ = _best(lambda: view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
+    t_img, volume = _best(lambda: view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
     return {"visible_facets": int(seen.sum()), "seconds_visibility": t_vis, "seconds_echo": t_echo,
             "seconds_imaging": 2 * t_img,  # the signal's image and the noise's own
-            "seconds_view": t_vis + t_echo + 2 * t_img, "signal": signal, "seen": seen, "vis": vis}
+            "seconds_view": t_vis + t_echo + 2 * t_img, "signal": signal, "volume": volume, "seen": seen, "vis": vis}
+
+
+def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
+    """The GPU row: per view, the echo and imaging on CUDA (radar/gpu.py) against one CPU core in this run.
+
+    cpu_views : per view of radar.views, view_seconds' dict of the CPU path (its seconds,
+    `signal`, `volume`, `seen`, `vis`). Visibility stays on the CPU, so its seconds are the
+    CPU's. Timings are best of REPEATS after a warm-up call (CUDA context, cuFFT plans),
+    which is timed on its own; results come back to the host, so each timing includes the
+    transfers and waits for the device. Skipped, with the reason, without torch or CUDA.
+    """
+    try:
+        import torch
+    except ImportError as error:
+        return {"skipped": f"torch is not installed ({error})"}
+    if not torch.cuda.is_available():
+        return {"skipped": "no CUDA device: torch.cuda.is_available() is false"}
+    import meshsar_builder.radar.gpu as RG
+    import meshsar_builder.radar.params as RP
+
+    freqs, (x_mm, y_mm) = RP.frequencies(radar), RP.aperture_axes(radar)
+    shape = (*radar.aperture, radar.n_samples)
+    start = time.perf_counter()
+    first = cpu_views[0]
+    RG.echo(verts[faces][first["seen"]][:8], first["vis"][first["seen"]][:8],
+            RP.aperture_positions(radar, radar.views[0])[:8], freqs, radar, device="cuda")
+    RG.view_volume(first["signal"], freqs, x_mm, y_mm, radar.z0_mm, images, device="cuda")
+    warm_up = time.perf_counter() - start
+    torch.cuda.reset_peak_memory_stats()
+    views = []
+    for view, cpu in zip(radar.views, cpu_views):
+        seen, vis = cpu["seen"], cpu["vis"]
+        positions = RP.aperture_positions(radar, view)
+        t_echo, signal = _best(lambda: RG.echo(verts[faces][seen], vis[seen], positions, freqs, radar, device="cuda"))
+        signal = signal.reshape(shape)
+        t_img, volume = _best(lambda: RG.view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images, device="cuda"))
+        seconds_view = cpu["seconds_visibility"] + t_echo + 2 * t_img
+        views.append({
+            "view": view, "seconds_echo": t_echo, "seconds_imaging": 2 * t_img, "seconds_view": seconds_view,
+            "cpu_seconds_view": cpu["seconds_view"], "speedup_view": cpu["seconds_view"] / seconds_view,
+            "speedup_echo": cpu["seconds_echo"] / t_echo,
+            "echo_relative_error": float(np.linalg.norm(signal - cpu["signal"]) / np.linalg.norm(cpu["signal"])),
+            "volume_relative_error": float(np.linalg.norm(volume - cpu["volume"]) / np.linalg.norm(cpu["volume"])),
+        })
+    return {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "facet": radar.facet,
+            "warm_up_seconds": warm_up, "peak_memory_bytes": int(torch.cuda.max_memory_allocated()),
+            "chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views}
 
 
 def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
@@ -88,11 +136,13 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
     freqs = RP.frequencies(radar)
     _, normals, _ = RV.facet_geometry(verts, faces)
     intersector = RV.embree_intersector(verts, faces)
-    views, ray_count, ray_seconds = [], 0, 0.0
+    views, ray_count, ray_seconds, cpu_views = [], 0, 0.0, []
     for view in radar.views:
         po = view_seconds(verts, faces, intersector, radar, images, view)
         point = view_seconds(verts, faces, intersector, centroid, images, view)
+        cpu_views.append(dict(po))  # the GPU row compares with these, arrays included
         seen, vis = po.pop("seen"), po.pop("vis")
+        po.pop("volume")
         positions = RP.aperture_positions(radar, view)
         subset = np.linspace(0, len(positions) - 1, DIRECT_ANTENNAS).round().astype(int)
         tri = verts[faces][seen]
@@ -136,6 +186,7 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
         "echo_first_call_seconds": first_call,
         "views": views,
         "embree_rays_per_second": ray_count / ray_seconds,
+        "gpu": gpu_row(verts, faces, radar, images, cpu_views),
         "targets": {
             "echo_speedup": {"target": TARGET_SPEEDUP, "measured_min": speedup, "met": speedup >= TARGET_SPEEDUP},
             "echo_relative_error": {"target": TARGET_ERROR, "measured_max": error, "met": error <= TARGET_ERROR},

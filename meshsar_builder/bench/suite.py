@@ -3,7 +3,8 @@
 Parts:
 - radar: seconds per view (visibility, echo, imaging) on one core for a demo
   mesh, the production echo's speed-up over the direct sum in the same run,
-  Embree rays per second (bench_radar);
+  Embree rays per second, and the GPU radar's seconds per view against that
+  core (a `gpu` row, skipped with the reason without CUDA) (bench_radar);
 - geometry: seconds per subject for meshing, remeshing and registration, and
   ms per SSM sample, at the demo recipe's settings on demo phantoms;
 - pipeline: the demo recipe's settings with fewer items, built with 1 and 2

@@ -189,6 +189,26 @@ def parse(text: str, file: str = "<recipe>") -> Recipe:
     )
 
 
+def override(recipe: Recipe, table: str, key: str, value: Any, where: str) -> Recipe:
+    """The recipe with [table] key set to value, checked like the file's own keys; RecipeError naming `where`.
+
+    For command-line settings that belong to a table (meshsar build --device sets [radar]
+    device). The recipe's text, digest and file stay those of the file: the override
+    reaches the stages through recipe.<table> in the build's Context, as the file's keys do.
+    """
+    section = recipe.sections[table]
+    hints = typing.get_type_hints(type(section))
+    if key not in {f.name for f in dataclasses.fields(section) if f.init}:
+        raise RecipeError(f"{where}: [{table}] has no key '{key}'")
+    try:
+        changed = dataclasses.replace(section, **{key: _coerce(value, hints[key], f"{where}")})
+    except RecipeError:
+        raise
+    except ValueError as e:  # __post_init__ messages start with the key
+        raise RecipeError(f"{where}: {e}") from e
+    return dataclasses.replace(recipe, sections={**recipe.sections, table: changed})
+
+
 def load(path: str | os.PathLike) -> Recipe:
     """Read and validate a recipe file."""
     return parse(read_text(path), str(path))

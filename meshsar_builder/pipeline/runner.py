@@ -85,6 +85,13 @@ class Stage:
     # Runs in the main process after every item: for outputs that depend on all items
     # (e.g. an index holding each shard's digest), which no single item can write.
     finish: Callable[[Context, "Results"], object] | None = None
+    # Dask worker resources each item needs (e.g. {"GPU": 1}), or None: only workers
+    # started with those resources take the stage's items. Local pools ignore them.
+    resources: Callable[[Context], dict | None] | None = None
+    # Raises MeshsarError when the stage cannot run where its items will run (e.g. a
+    # GPU asked for and none there). Called once when the build starts, before any stage
+    # runs, so a build fails in seconds instead of at the stage or in every item.
+    check: Callable[[Context], object] | None = None
 
 
 @dataclass
@@ -180,6 +187,11 @@ def run_item(ctx: Context, stage: Stage, item: Item) -> tuple[dict | None, dict 
         }
 
 
+def stage_resources(ctx: Context, stage: Stage) -> dict | None:
+    """The Dask resources the stage's items need (Stage.resources), None for none."""
+    return (stage.resources(ctx) or None) if stage.resources is not None else None
+
+
 class LocalPool:
     """Local worker processes (spawn: Embree, BLAS and torch threads do not survive fork reliably)."""
 
@@ -187,8 +199,14 @@ class LocalPool:
         self.executor = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
         self.slots = 2 * workers
 
-    def submit(self, fn, *args):
+    def submit(self, fn, *args, resources: dict | None = None):
+        # One machine: every worker sees what this process sees, so resources mean nothing here.
         return self.executor.submit(fn, *args)
+
+    def check(self, ctx: Context, stage: Stage) -> None:
+        """Stage.check, here: the workers are this machine's processes."""
+        if stage.check is not None:
+            stage.check(ctx)
 
     def wait(self, futures: set) -> tuple[set, set]:
         return cf.wait(futures, return_when=cf.FIRST_COMPLETED)
@@ -210,16 +228,47 @@ class DaskPool:
 
         if scheduler.startswith("local:"):
             n = int(scheduler.split(":", 1)[1])
+            # Every worker of a LocalCluster runs on this machine and sees its GPUs, as a local
+            # pool's would: each declares one, so items that ask for a GPU (a CUDA radar) run
+            # here too, one per worker; Stage.check still tests that CUDA is really there.
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                        dashboard_address=None)
+                                        dashboard_address=None, resources={"GPU": 1})
             self.client = Client(self.cluster)
         else:
             self.cluster = None
             self.client = Client(scheduler, timeout="30s")
         self.slots = 2 * max(1, sum(self.client.nthreads().values()))
 
-    def submit(self, fn, *args):
-        return self.client.submit(fn, *args, pure=False)
+    def submit(self, fn, *args, resources: dict | None = None):
+        return self.client.submit(fn, *args, pure=False, resources=resources)
+
+    def worker_resources(self) -> dict[str, dict]:
+        """Worker address -> the resources it declared ({} for none), every worker of the cluster."""
+        try:
+            info = self.client.scheduler_info(n_workers=-1)  # newer distributed lists 5 workers by default
+        except TypeError:  # older distributed lists them all and takes no n_workers
+            info = self.client.scheduler_info()
+        return {addr: dict(w.get("resources") or {}) for addr, w in info["workers"].items()}
+
+    def check(self, ctx: Context, stage: Stage) -> None:
+        """Stage.check on the workers that will take the stage's items; MeshsarError if none can.
+
+        Dask holds a task that needs resources no worker has until such a worker joins,
+        so a build whose GPU workers are missing would wait forever: refuse it here.
+        """
+        need = stage_resources(ctx, stage)
+        workers = self.worker_resources()
+        if need:
+            workers = {addr: have for addr, have in workers.items()
+                       if all(have.get(name, 0) >= amount for name, amount in need.items())}
+            if not workers:
+                flags = " ".join(f"{name}={amount}" for name, amount in need.items())
+                raise MeshsarError(
+                    f"stage {stage.name}: its items need Dask worker resources {need}, and no worker of "
+                    f"{self.client.scheduler.address} declares them; start such workers first, e.g. "
+                    f"dask worker {self.client.scheduler.address} --nthreads 1 --resources \"{flags}\"")
+        if stage.check is not None and workers:
+            self.client.run(stage.check, ctx, workers=list(workers))
 
     def wait(self, futures: set) -> tuple[set, set]:
         from distributed import wait
@@ -240,15 +289,24 @@ def make_pool(workers: int = 1, scheduler: str | None = None) -> LocalPool | Das
     return LocalPool(workers) if workers > 1 else None
 
 
+def check_stage(ctx: Context, stage: Stage, pool=None) -> None:
+    """Stage.check where the stage's items will run: this process, or the pool's workers."""
+    if pool is not None:
+        pool.check(ctx, stage)
+    elif stage.check is not None:
+        stage.check(ctx)
+
+
 def _outcomes(ctx: Context, stage: Stage, todo: list[Item], pool):
     """Run items, yielding (record, failure) as they finish; at most pool.slots in flight."""
     if pool is None:
         yield from (run_item(ctx, stage, it) for it in todo)
         return
     queue, pending = iter(todo), set()
+    resources = stage_resources(ctx, stage)
     while True:
         for item in queue:
-            pending.add(pool.submit(run_item, ctx, stage, item))
+            pending.add(pool.submit(run_item, ctx, stage, item, resources=resources))
             if len(pending) >= pool.slots:
                 break
         if not pending:
@@ -324,6 +382,9 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
     for name in (until, *force):
         if name is not None and name not in stages:
             raise MeshsarError(f"unknown stage {name!r}; available: {', '.join(stages)}")
+    if until is not None:
+        names = list(stages)
+        stages = {name: stages[name] for name in names[: names.index(until) + 1]}
     try:
         out.mkdir(parents=True, exist_ok=True)
         write_bytes(out / "recipe.toml", recipe.text.encode("utf-8"))
@@ -333,10 +394,10 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
     results = Results()
     pool = make_pool(workers, scheduler)
     try:
+        for stage in stages.values():  # every stage that will run, before the first runs
+            check_stage(ctx, stage, pool)
         for name, stage in stages.items():
             run_stage(ctx, stage, results, pool, force=name in force)
-            if name == until:
-                break
     finally:
         if pool is not None:
             pool.close()

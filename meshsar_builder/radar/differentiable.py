@@ -98,10 +98,16 @@ def facet_phasor(phase: torch.Tensor, beta: torch.Tensor, wavenumber: torch.Tens
     return direct_re.index_put(near, near_re), direct_im.index_put(near, near_im)
 
 
-def _echo_chunk(centroids, normals, weights, edges, positions, freqs, radar: RadarParams):
+def echo_chunk(centroids, normals, weights, edges, positions, freqs, radar: RadarParams):
     """sum_k w_k g(cos theta_km) / R^2 exp(j 2 pi (f_n tau - S tau^2 / 2)) F_k / A_k: (..., M, Ef).
 
-    edges (..., F, 3, 3): corners minus centroid, or None for the centroid model (F_k = A_k).
+    centroids, normals (..., F, 3) mm; weights (..., F) mm^2 (visibility times area);
+    edges (..., F, 3, 3): corners minus centroid, or None for a point scatterer at each
+    centroid (F_k = A_k); positions (M, 3) mm; freqs (Ef,) Hz. The direct sum of DESIGN
+    section 4 for one chunk of antennas and facets, in the precision and on the device of
+    its tensors: the trainer's loss differentiates it (echo_torch) and the build's GPU
+    radar evaluates it in float64 without gradients (radar/gpu.py), so both share this
+    one copy of the facet integral.
     """
     diff = positions[:, None, :] - centroids[..., None, :, :]  # (..., M, F, 3) a_m - c_k
     r2 = (diff * diff).sum(-1)
@@ -183,7 +189,7 @@ def echo_torch(verts: torch.Tensor, faces: torch.Tensor, positions, freqs, radar
     for start in range(0, len(positions), chunk):
         args = (centroids, normals, weights, edges, positions[start : start + chunk], freqs, radar)
         if torch.is_grad_enabled() and verts.requires_grad:
-            parts.append(checkpoint(_echo_chunk, *args, use_reentrant=False))
+            parts.append(checkpoint(echo_chunk, *args, use_reentrant=False))
         else:
-            parts.append(_echo_chunk(*args))
+            parts.append(echo_chunk(*args))
     return torch.cat(parts, dim=-2)

@@ -107,6 +107,30 @@ def phasor(cycles: np.ndarray) -> np.ndarray:
     return out
 
 
+def aperture_window(nx: int, ny: int, kind: str) -> np.ndarray:
+    """(Nx, Ny, 1) float: the separable aperture window the echo is weighted by before its FFT."""
+    return _window(nx, kind)[:, None, None] * _window(ny, kind)[None, :, None]
+
+
+def spectral_grid(nx: int, ny: int, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, u_mm: np.ndarray,
+                  v_mm: np.ndarray) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray]:
+    """(px, py, kx (px,), ky (py,), k (Nf,)): the zero-padded FFT sizes and wavenumbers (rad/mm) of focus.
+
+    Shared by the numpy focus and the torch one (radar/gpu.py), so both pad and sample
+    the spectrum alike.
+    """
+    dx, dy = x_mm[1] - x_mm[0], y_mm[1] - y_mm[0]
+    # Zero-padding to twice the larger of aperture and image extent keeps the
+    # periodic images of the scene and of its sidelobes out of the pixels.
+    extent = 2 * max(np.ptp(u_mm) + dx, np.ptp(v_mm) + dy, nx * dx, ny * dy)
+    px = next_fast_len(max(nx, math.ceil(extent / dx)))
+    py = next_fast_len(max(ny, math.ceil(extent / dy)))
+    kx = 2 * np.pi * np.fft.fftfreq(px, dx)
+    ky = 2 * np.pi * np.fft.fftfreq(py, dy)
+    k = 2 * np.pi * np.asarray(freqs) / SPEED_OF_LIGHT_MM_PER_S
+    return px, py, kx, ky, k
+
+
 def focus(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray,
           u_mm: np.ndarray, v_mm: np.ndarray, d_mm: np.ndarray, window: str = "hann") -> np.ndarray:
     """Complex reflectivity (S, H, W) complex64 by range migration.
@@ -116,17 +140,9 @@ def focus(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarra
     d_mm (S,): range slices, uniformly spaced distances from the aperture plane.
     """
     nx, ny, _ = echo.shape
-    dx, dy = x_mm[1] - x_mm[0], y_mm[1] - y_mm[0]
-    # Zero-padding to twice the larger of aperture and image extent keeps the
-    # periodic images of the scene and of its sidelobes out of the pixels.
-    extent = 2 * max(np.ptp(u_mm) + dx, np.ptp(v_mm) + dy, nx * dx, ny * dy)
-    px = next_fast_len(max(nx, math.ceil(extent / dx)))
-    py = next_fast_len(max(ny, math.ceil(extent / dy)))
-    weighted = echo * (_window(nx, window)[:, None, None] * _window(ny, window)[None, :, None])
+    px, py, kx, ky, k = spectral_grid(nx, ny, freqs, x_mm, y_mm, u_mm, v_mm)
+    weighted = echo * aperture_window(nx, ny, window)
     spectrum = np.fft.fft2(weighted, s=(px, py), axes=(0, 1)).astype(np.complex64)
-    kx = 2 * np.pi * np.fft.fftfreq(px, dx)
-    ky = 2 * np.pi * np.fft.fftfreq(py, dy)
-    k = 2 * np.pi * np.asarray(freqs) / SPEED_OF_LIGHT_MM_PER_S
     kz2 = 4 * k[None, None, :] ** 2 - kx[:, None, None] ** 2 - ky[None, :, None] ** 2
     spectrum[kz2 <= 0] = 0  # evanescent: no propagating wave carries it
     kz_cycles = np.sqrt(np.maximum(kz2, 0)) / (2 * np.pi)

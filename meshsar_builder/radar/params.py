@@ -6,6 +6,7 @@ Geometry is in millimetres in the heart frame; frequencies in Hz, delays in s.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +38,9 @@ PROBES = ("corners", "centre")
 # within 18 dB of the peak detected for the depth channel (DETECTION_MARGIN_DB).
 DEFAULT_IMAGE_SNR_DB = 30.0
 ECHO_METHODS = ("chebyshev", "direct")
+# Where the echo and imaging of a view run: "cpu" (the numba echo and numpy imaging, the
+# default, whose bytes the demo shards pin) or a CUDA device through torch (radar/gpu.py).
+DEVICE_RE = re.compile(r"^(cpu|cuda|cuda:[0-9]+)$")
 
 # Offset of a visibility ray's origin along the facet normal: ~100 float32 ulps at
 # heart scale, so Embree never re-hits the facet it starts from.
@@ -87,6 +91,7 @@ class RadarParams:
     probes: str = "corners"
     echo_decimation: tuple[int, ...] = (5, 5, 2)
     echo_method: str = "chebyshev"
+    device: str = "cpu"
 
     def __post_init__(self):
         for name in ("f0_hz", "slope_hz_per_s", "fs_hz", "t0_s", "step_mm", "z0_mm", "p", "kappa"):
@@ -128,6 +133,8 @@ class RadarParams:
                               ("echo_method", ECHO_METHODS)):
             if getattr(self, name) not in allowed:
                 raise invalid(name, f"must be one of {', '.join(allowed)}", getattr(self, name))
+        if not isinstance(self.device, str) or not DEVICE_RE.match(self.device):
+            raise invalid("device", 'must be "cpu", "cuda" or "cuda:N" (N a device index)', self.device)
 
 
 # ---------------------------------------------------------------- views and apertures

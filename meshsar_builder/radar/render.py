@@ -39,6 +39,20 @@ def noise_scale(signal_power: float, signal_peak: float, noise_rms: float, radar
     return signal_peak / noise_rms / 10 ** (radar.image_snr_db / 20)
 
 
+def view_functions(device: str):
+    """(echo, view_volume) of a view for radar.device: the numba echo and numpy imaging on "cpu", else torch's.
+
+    The torch module is imported only for a CUDA device, so a CPU build never needs torch.
+    Both pairs take and return numpy arrays; visibility (Embree) and the noise stay on the
+    CPU either way.
+    """
+    if device == "cpu":
+        return echo, view_volume
+    from meshsar_builder.radar import gpu
+
+    return gpu.view_functions(device)
+
+
 def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, images: ImageParams,
                   rng: np.random.Generator) -> dict:
     """SAR images and decimated echo of one mesh for every view of `radar`.
@@ -56,6 +70,10 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     and `noise_power` (mean per raw sample), `raw_snr_db`, `noise_floor_db` (the image
     noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
     and `seconds` for visibility, echo and imaging.
+
+    radar.device picks where each view's echo and imaging run (view_functions); the noise
+    is drawn here on the CPU from rng either way, so a CUDA build differs from a CPU
+    build only by floating-point rounding.
     """
     verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces)
     tri = verts[faces]
@@ -69,22 +87,23 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
                               in zip((*radar.aperture, radar.n_samples), radar.echo_decimation))
     shape = (*radar.aperture, radar.n_samples)
     noisy = radar.snr_db != math.inf and radar.image_snr_db != math.inf
+    view_echo, volume_of = view_functions(radar.device)
     sar, decimated, stats = [], [], []
     for view, noise_rng in zip(radar.views, noise_rngs):
         t0 = time.perf_counter()
         vis, rays = visibility(verts, faces, probe_points(radar, view), intersector)
         t1 = time.perf_counter()
         seen = vis > 0
-        signal = echo(tri[seen], vis[seen], aperture_positions(radar, view), freqs, radar, points=points[seen])
+        signal = view_echo(tri[seen], vis[seen], aperture_positions(radar, view), freqs, radar, points=points[seen])
         signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
         noise = unit_noise(shape, noise_rng) if noisy else None
         t2 = time.perf_counter()
-        volume = view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images)
+        volume = volume_of(signal, freqs, x_mm, y_mm, radar.z0_mm, images)
         peak = float(np.abs(volume).max())
         sigma, floor_db, image_noise = 0.0, None, 0.0
         if noisy:
-            noise_volume = view_volume(noise, freqs, x_mm, y_mm, radar.z0_mm, images)
+            noise_volume = volume_of(noise, freqs, x_mm, y_mm, radar.z0_mm, images)
             noise_rms = float(np.sqrt(np.mean(np.abs(noise_volume) ** 2)))
             sigma = noise_scale(signal_power, peak, noise_rms, radar)
             if sigma > 0:

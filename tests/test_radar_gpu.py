@@ -1,0 +1,234 @@
+"""The radar on a torch device (radar/gpu.py) against the numba echo and numpy imaging, and its plumbing.
+
+CI has no GPU: the torch path runs on device "cpu" there, which checks the same code a
+CUDA device runs; the "cuda" cases run where torch sees a GPU and are skipped elsewhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import meshsar_builder.radar.echo as RE  # noqa: E402
+import meshsar_builder.radar.gpu as RG  # noqa: E402
+import meshsar_builder.radar.params as RP  # noqa: E402
+import meshsar_builder.radar.render as RR  # noqa: E402
+import meshsar_builder.radar.visibility as RV  # noqa: E402
+from meshsar_builder.pipeline import recipe as R  # noqa: E402
+from meshsar_builder.pipeline.errors import MeshsarError  # noqa: E402
+from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images  # noqa: E402
+
+from .conftest import MANIFESTS  # noqa: E402
+
+NO_CUDA = "no CUDA device: torch.cuda.is_available() is false"
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason=NO_CUDA))]
+# A 160 mm aperture like the default's, sampled coarsely (aliased, which both paths share),
+# and half the sweep: the demo heart's ~6,000 visible facets still make every sum long.
+RADAR = dict(aperture=(10, 10), step_mm=16.0, n_samples=32, echo_decimation=(1, 1, 1))
+IMAGES = ImageParams(size=48)
+TOLERANCE = 1e-5  # relative L2, torch path against the CPU production path
+
+
+def relative(got, expected) -> float:
+    return float(np.linalg.norm(np.asarray(got) - expected) / np.linalg.norm(expected))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread: on a shared 2-core machine two spinning threads ran the sums ~10x slower."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    from meshsar_builder.bench.suite import demo_mesh
+
+    verts, faces = demo_mesh()
+    return verts, faces, RV.embree_intersector(verts, faces)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("facet", ["po", "centroid", "random"])
+def test_echo_and_images_match_the_cpu_path_on_the_demo_heart(demo, facet, device):
+    verts, faces, intersector = demo
+    radar = RP.RadarParams(**RADAR, facet=facet)
+    points = RV.scatterer_points(verts, faces, facet, np.random.default_rng(3))
+    freqs, (x, y) = RP.frequencies(radar), RP.aperture_axes(radar)
+    for view in radar.views:
+        vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view), intersector)
+        seen = vis > 0
+        args = (verts[faces][seen], vis[seen], RP.aperture_positions(radar, view), freqs, radar)
+        cpu = RE.echo(*args, points=points[seen])
+        got = RG.echo(*args, points=points[seen], device=device)
+        assert got.dtype == np.complex128 and got.shape == cpu.shape
+        assert relative(got, cpu) < TOLERANCE, (view, relative(got, cpu))
+        cpu_volume = view_volume(cpu.reshape(10, 10, -1), freqs, x, y, radar.z0_mm, IMAGES)
+        volume = RG.view_volume(got.reshape(10, 10, -1), freqs, x, y, radar.z0_mm, IMAGES, device=device)
+        assert volume.dtype == np.complex64 and volume.shape == cpu_volume.shape
+        assert relative(volume, cpu_volume) < TOLERANCE, (view, relative(volume, cpu_volume))
+        images = volume_images(volume, freqs, radar.z0_mm, IMAGES)
+        cpu_images = volume_images(cpu_volume, freqs, radar.z0_mm, IMAGES)
+        for channel in range(len(IMAGES.channels)):
+            assert relative(images[channel], cpu_images[channel]) < TOLERANCE, (view, channel)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_chunks_over_antennas_and_facets_sum_to_one_pass(monkeypatch, device):
+    """A chunk budget far below one antenna's facets splits both axes; the sum is the same to rounding."""
+    rng = np.random.default_rng(0)
+    tri = rng.normal(size=(50, 3, 3)) * 3 + rng.normal(size=(50, 1, 3)) * 30
+    radar = RP.RadarParams(aperture=(4, 3), echo_decimation=(1, 1, 1), n_samples=16)
+    args = (tri, rng.random(50), RP.aperture_positions(radar, "left"), RP.frequencies(radar), radar)
+    whole = RG.echo(*args, device=device)
+    monkeypatch.setattr(RG, "CPU_CHUNK_BYTES", RG.BYTES_PER_TERM * 16 * 7)  # 7 facets of one antenna
+    monkeypatch.setattr(RG, "DEVICE_CHUNK_BYTES", RG.BYTES_PER_TERM * 16 * 7)
+    assert relative(RG.echo(*args, device=device), whole) < 1e-14
+    assert relative(whole, RE.echo(*args, method="direct")) < 1e-12
+    assert not RG.echo(tri[:0], np.ones(0), *args[2:], device=device).any()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_render_sample_on_the_torch_path_adds_the_same_noise(monkeypatch, device):
+    """The whole sample, noise included: it is drawn on the CPU from the same generator, so only rounding differs."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(3, radius=40.0)
+    radar = RP.RadarParams(aperture=(12, 12), step_mm=12.0, n_samples=24, echo_decimation=(2, 2, 2))
+    images = ImageParams(size=32)
+    cpu = RR.render_sample(mesh.vertices, mesh.faces, radar, images, np.random.default_rng(7))
+    if device == "cpu":  # the torch functions, on the CPU: what device = "cuda" runs, elsewhere
+        monkeypatch.setattr(RR, "view_functions", lambda device: RG.view_functions("cpu"))
+    else:
+        radar = dataclasses.replace(radar, device=device)
+    got = RR.render_sample(mesh.vertices, mesh.faces, radar, images, np.random.default_rng(7))
+    assert relative(got["echo"], cpu["echo"]) < TOLERANCE  # noise included: the same draws
+    assert relative(got["sar"].astype(np.float32), cpu["sar"].astype(np.float32)) < 1e-3  # float16 steps
+    for mine, theirs in zip(got["views"], cpu["views"]):
+        assert mine["visible_facets"] == theirs["visible_facets"]
+        np.testing.assert_allclose(mine["noise_power"], theirs["noise_power"], rtol=1e-5)
+        np.testing.assert_allclose(mine["noise_floor_db"], theirs["noise_floor_db"], atol=1e-4)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA: the error is for machines without")
+def test_cuda_without_cuda_fails_before_the_build_starts(tmp_path, capsys):
+    from meshsar_builder.cli import main
+    from meshsar_builder.pipeline.runner import build
+
+    with pytest.raises(MeshsarError, match=r"\[radar\] device.*--device.*'cuda': CUDA is not available"):
+        RG.check_device("cuda")
+    recipe = R.override(R.load(MANIFESTS / "smoke.toml"), "radar", "device", "cuda", "--device")
+    with pytest.raises(MeshsarError, match="CUDA is not available"):
+        build(recipe, tmp_path / "out")
+    assert not (tmp_path / "out" / "sources").exists()  # no stage ran
+    assert main(["build", str(MANIFESTS / "smoke.toml"), "--out", str(tmp_path / "cli"), "--device", "cuda"]) == 2
+    assert "--device" in capsys.readouterr().err
+    # a stage that does not run needs no GPU
+    assert build(recipe, tmp_path / "sources-only", until="sources").failures == []
+
+
+def test_a_cuda_index_beyond_the_devices_is_named():
+    if not torch.cuda.is_available():
+        pytest.skip(NO_CUDA)
+    with pytest.raises(MeshsarError, match="cuda:99.*sees"):
+        RG.check_device("cuda:99")
+
+
+def test_the_radar_stage_keeps_cpu_hashes_and_tags_gpu_items():
+    from stages import radar as stage
+
+    from meshsar_builder.pipeline.runner import Context
+
+    recipe = R.load(MANIFESTS / "smoke.toml")
+    ctx = Context(out=MANIFESTS, recipe=recipe)
+    params = stage.item_params(ctx)
+    assert "device" not in params and "device" not in params["radar"]  # the hash a CPU build had before
+    assert stage.resources(ctx) is None
+    for device in ("cuda", "cuda:1"):
+        gpu = Context(out=MANIFESTS, recipe=R.override(recipe, "radar", "device", device, "--device"))
+        assert stage.item_params(gpu) == {**params, "device": "cuda"}
+        assert stage.resources(gpu) == {"GPU": 1}
+
+
+# ------------------------------------------------------------------ Dask: GPU items go to GPU workers
+
+
+def _where(ctx, item):
+    from distributed import get_worker
+
+    return {"worker": get_worker().name}
+
+
+def _refuse(ctx, dask_worker=None):  # Client.run hands the worker to a `dask_worker` parameter
+    raise MeshsarError(f"checked on {dask_worker.name}")
+
+
+def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_path):
+    """A cluster of a CPU worker and a GPU=1 worker: tagged items all run on the latter; checks run there."""
+    from distributed import Scheduler, SpecCluster, Worker
+
+    from meshsar_builder.pipeline.runner import Context, DaskPool, Item, Results, Stage, check_stage, run_stage
+
+    workers = {"cpu": {"cls": Worker, "options": {"nthreads": 1}},
+               "gpu": {"cls": Worker, "options": {"nthreads": 1, "resources": {"GPU": 1}}}}
+    scheduler = {"cls": Scheduler, "options": {"dashboard_address": ":0", "host": "127.0.0.1"}}
+    ctx = Context(out=tmp_path, recipe=R.load(MANIFESTS / "smoke.toml"))
+    items = lambda ctx, results: [Item(f"i{n}", ()) for n in range(8)]  # noqa: E731
+    tagged = Stage(name="tagged", version=1, plan=items, run=_where, resources=lambda ctx: {"GPU": 1}, check=_refuse)
+    needs_tpu = Stage(name="tpu", version=1, plan=items, run=_where, resources=lambda ctx: {"TPU": 1})
+    with SpecCluster(workers=workers, scheduler=scheduler) as cluster:
+        pool = DaskPool(cluster.scheduler_address)
+        try:
+            results = Results()
+            run_stage(ctx, tagged, results, pool)
+            assert {rec["worker"] for rec in results.of("tagged").values()} == {"gpu"}
+            with pytest.raises(MeshsarError, match="checked on gpu"):  # the check ran where the items go
+                check_stage(ctx, tagged, pool)
+            with pytest.raises(MeshsarError, match=r"resources \{'TPU': 1\}.*--resources \"TPU=1\""):
+                check_stage(ctx, needs_tpu, pool)
+        finally:
+            pool.close()
+
+
+def test_bench_gpu_row_is_skipped_with_a_reason_or_filled(monkeypatch):
+    """`meshsar bench radar`'s GPU row: a reason without CUDA; its numbers (here with "cuda" routed to the CPU)."""
+    import trimesh
+
+    from meshsar_builder.bench import radar as BR
+
+    mesh = trimesh.creation.icosphere(2, radius=40.0)
+    verts, faces = mesh.vertices, mesh.faces
+    radar, images = RP.RadarParams(aperture=(6, 6), step_mm=20.0, n_samples=16, echo_decimation=(1, 1, 1),
+                                   views=("anterior", "left")), ImageParams(size=16)
+    intersector = RV.embree_intersector(verts, faces)
+    cpu_views = [BR.view_seconds(verts, faces, intersector, radar, images, view) for view in radar.views]
+    if not torch.cuda.is_available():
+        assert BR.gpu_row(verts, faces, radar, images, cpu_views) == {"skipped": NO_CUDA}
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(RG, "check_device", lambda device: torch.device("cpu"))
+        for name, value in (("get_device_name", "cpu"), ("reset_peak_memory_stats", None),
+                            ("max_memory_allocated", 0)):
+            monkeypatch.setattr(torch.cuda, name, lambda *args, value=value: value)
+    row = BR.gpu_row(verts, faces, radar, images, cpu_views)
+    assert [v["view"] for v in row["views"]] == list(radar.views)
+    for view in row["views"]:
+        assert view["echo_relative_error"] < TOLERANCE and view["volume_relative_error"] < TOLERANCE
+        assert view["seconds_view"] > view["seconds_echo"] > 0 and view["speedup_view"] > 0
+
+
+@pytest.mark.slow  # starts a process cluster: ~10-20 s on 2 cores
+def test_a_local_dask_cluster_can_take_gpu_items():
+    """`--scheduler local:N` workers share this machine's GPUs, so each declares one (a CUDA build can use them)."""
+    from meshsar_builder.pipeline.runner import DaskPool
+
+    pool = DaskPool("local:1")
+    try:
+        assert [have.get("GPU") for have in pool.worker_resources().values()] == [1]
+    finally:
+        pool.close()
