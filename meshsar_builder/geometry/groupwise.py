@@ -19,19 +19,17 @@ register_groupwise here is the same procedure in one process (bench, tests).
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 
 from meshsar_builder.geometry.nricp import flipped_faces
+from meshsar_builder.geometry.registration import RegistrationParams, accept, register
 from meshsar_builder.geometry.remesh import self_intersecting_faces
 from meshsar_builder.geometry.ssm import procrustes_align, rigid_fit
 from meshsar_builder.pipeline.errors import MeshError
-
-if TYPE_CHECKING:
-    from meshsar_builder.geometry.registration import RegistrationParams
 
 # Taubin's lambda|mu pair of the remesh stage: a low-pass filter that barely shrinks.
 TAUBIN_LAMBDA, TAUBIN_MU = 0.5, -0.53
@@ -133,10 +131,6 @@ def register_groupwise(
     next_template (mean_template's report) unless it is the last. A rejected fit raises
     (registration.accept).
     """
-    import time
-
-    from meshsar_builder.geometry.registration import accept, register
-
     t_verts, t_faces, t_labels = template
     rounds, templates, moved, round_ = [], [t_verts], None, 0
     while True:
