@@ -28,6 +28,7 @@ a named failure, not a silent bad shape. Version 3: groupwise template.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -107,7 +108,7 @@ def groupwise_template(ctx: Context, round_: int, fits: dict[str, dict]) -> tupl
 def publish(ctx: Context, template: str, round_: int) -> None:
     """register/template.ply: the last round's template (only rewritten when it changed)."""
     folder = ctx.stage_dir(NAME)
-    data = open(template, "rb").read()
+    data = Path(template).read_bytes()
     path = folder / "template.ply"
     if not path.exists() or path.read_bytes() != data:
         write_bytes(path, data)

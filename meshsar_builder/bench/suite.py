@@ -75,8 +75,8 @@ def _timed(fn, *args):
 
 def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
     """Seconds per subject for meshing, remeshing and registration; ms per SSM sample (demo settings)."""
-    from meshsar_builder.geometry.meshing import transfer_labels
     from meshsar_builder.geometry.groupwise import register_groupwise
+    from meshsar_builder.geometry.meshing import transfer_labels
     from meshsar_builder.geometry.remesh import remesh, simplify
     from meshsar_builder.geometry.ssm import build_model, sample_valid
     from meshsar_builder.pipeline.seeding import item_rng

@@ -87,7 +87,7 @@ def mean_template(
     _, mean = procrustes_align(fits, PROCRUSTES_ITERATIONS)
     plain = bbox_centred(mean)
     before = rigid_fit(np.asarray(previous, dtype=np.float64), plain)
-    verts, report = plain, {"subjects": int(len(fits))}
+    verts, report = plain, {"subjects": len(fits)}
     for steps in range(max_smoothing + 1):
         if steps:
             # Smoothing moves the box a little; the frame stays the bounding-box-centred one.
