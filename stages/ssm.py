@@ -9,7 +9,8 @@ sampler, redraws included; per-subject registration figures), and
 `ssm/samples/<source>-ssmNNNNN.ply` for `ssm.samples` shapes. Each sample is
 drawn from its own seed (recipe seed, stage, sample id), so a sample does not
 change when the sample count does; self-intersecting draws are redrawn and
-counted.
+counted. The model's frame is the template's (register/template.ply: canonical pose),
+and its modes have a fixed sign, so the order of the subjects changes nothing (version 3).
 """
 
 from __future__ import annotations
@@ -47,11 +48,13 @@ def plan(ctx: Context, results: Results) -> list[Item]:
 
 def run(ctx: Context, item: Item) -> dict:
     params = ctx.recipe.ssm
-    _, faces, labels = read_ply(item.inputs[0])
+    template, faces, labels = read_ply(item.inputs[0])
     shapes = np.stack([read_ply(p)[0] for p in item.inputs[1:]])
     if len(shapes) < 3:
         raise MeshError(f"shape model: needs at least 3 registered subjects, got {len(shapes)}")
-    model = build_model(shapes, faces, params.variance, params.procrustes_iterations, labels=labels)
+    # The template's frame (register: the groupwise template in its canonical pose), so the
+    # model's pose does not follow whichever subject was listed first.
+    model = build_model(shapes, faces, params.variance, params.procrustes_iterations, labels=labels, reference=template)
     folder = ctx.stage_dir(NAME)
     save_model(folder / "model.npz", model)
     samples, redraws = {}, 0
@@ -75,4 +78,4 @@ def run(ctx: Context, item: Item) -> dict:
             "self_intersection_redraws": redraws}
 
 
-STAGE = Stage(name=NAME, version=2, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=3, plan=plan, run=run)

@@ -222,3 +222,41 @@ def test_ctrl_c_stops_cleanly_and_the_rerun_resumes(tmp_path, tmp_recipe):
     assert not [p for p in out.rglob("*") if TMP_MARK in p.name]
     resumed = build(R.load(recipe), out, until="meshes")
     assert resumed.failures == [] and resumed.summary[1]["skipped"] >= 1
+
+
+def _counting_stage(log: list):
+    """A toy stage of passes: each pass's items add 1 to the previous pass's value, 3 passes."""
+    from meshsar_builder.pipeline.runner import Item, Stage
+
+    def plan(ctx, results):
+        round_ = results.passes.get("count", 0)
+        start = {i: rec["value"] for i, rec in results.of("count").items()} or {"a": 0, "b": 10}
+        log.append(round_)
+        return [Item(f"r{round_}-{i[-1]}", (f"r{round_}-{i[-1]}.json",), params={"start": v}) for i, v in start.items()]
+
+    def run(ctx, item):
+        (ctx.stage_dir("count") / item.outputs[0]).write_text("x")
+        return {"value": item.params["start"] + 1}
+
+    def again(ctx, results):
+        return results.passes["count"] < 3
+
+    return Stage(name="count", version=1, plan=plan, run=run, again=again)
+
+
+def test_a_stage_runs_pass_after_pass_while_again_says_so_and_resumes(tmp_path):
+    from meshsar_builder.pipeline.runner import Context, Results, run_stage
+
+    log: list = []
+    stage = _counting_stage(log)
+    ctx = Context(out=tmp_path, recipe=None)
+    results = Results()
+    row = run_stage(ctx, stage, results)
+    assert log == [0, 1, 2] and results.passes["count"] == 3
+    # The last pass's records are the stage's: each value went through all three passes.
+    assert {i: rec["value"] for i, rec in results.of("count").items()} == {"r2-a": 3, "r2-b": 13}
+    assert (row["items"], row["ran"], row["skipped"], row["failed"]) == (6, 6, 0, 0)
+    # A second run plans the same passes and skips every item.
+    log.clear()
+    row = run_stage(ctx, stage, Results())
+    assert log == [0, 1, 2] and (row["ran"], row["skipped"]) == (0, 6)

@@ -32,6 +32,11 @@ def test_every_stage_runs_and_the_dataset_verifies(smoke):
     index = read_json(out / "index.json")
     assert index["counts"]["subset"] == {"ssm": 4, "direct": 4}
     assert [v["name"] for v in index["views"]] == ["anterior", "left", "superior"]
+    groupwise = read_json(out / "register" / "groupwise.json")
+    # The default 2 groupwise rounds after the reference subject's, each recorded with its movement.
+    assert [r["round"] for r in groupwise["rounds"]] == [0, 1, 2] and groupwise["last_round"] == 2
+    assert all(r["registered"] == 3 and r["movement_mm"] >= 0 for r in groupwise["rounds"][1:])
+    assert (out / "register" / "template.ply").read_bytes() == (out / "register" / "template-2.ply").read_bytes()
     report = read_json(out / "ssm" / "report.json")
     assert {"compactness", "generalisation_mm", "specificity_mm"} <= set(report)
     assert report["self_intersection_redraws"] >= 0 and report["samples"] == 4

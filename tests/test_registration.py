@@ -158,6 +158,9 @@ def test_choose_template_takes_the_median_volume_deterministically():
         ("landmark_weight", -0.1),
         ("landmark_smoothing", -1.0),
         ("min_label_agreement", 1.5),
+        ("groupwise_rounds", -1),
+        ("groupwise_converge_mm", -0.1),
+        ("groupwise_smoothing", -1),
     ],
 )
 def test_params_reject_bad_values_naming_the_field(field, value):

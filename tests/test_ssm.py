@@ -65,7 +65,9 @@ def training():
 @pytest.fixture(scope="module")
 def model(training):
     shapes, faces, _ = training
-    return build_model(shapes, faces, variance=0.98)
+    # Shape 0 is the unrotated one: as the reference (the template's role), it puts the model
+    # in the frame of the true modes.
+    return build_model(shapes, faces, variance=0.98, reference=shapes[0])
 
 
 def test_known_modes_and_variances_are_recovered(model, training):
@@ -127,7 +129,7 @@ def test_procrustes_removes_rotation_and_translation_and_keeps_scale(seed, shift
     base, _ = base_mesh()
     rotation = Rotation.random(random_state=seed).as_matrix()
     moved = base @ rotation.T + np.array(shift)
-    aligned, mean = procrustes_align(np.stack([base, moved]))
+    aligned, mean = procrustes_align(np.stack([base, moved]), reference=base)
     centred = base - base.mean(axis=0)
     np.testing.assert_allclose(aligned[1], aligned[0], atol=1e-8)
     np.testing.assert_allclose(mean, centred, atol=1e-8)
@@ -139,6 +141,42 @@ def test_procrustes_keeps_size_differences():
     aligned, _ = procrustes_align(np.stack([base, 1.5 * base @ Rotation.from_euler("z", 30, degrees=True).as_matrix().T]))
     sizes = np.linalg.norm(aligned - aligned.mean(axis=1, keepdims=True), axis=(1, 2))
     assert sizes[1] / sizes[0] == pytest.approx(1.5, rel=1e-9)
+
+
+def _assert_same_model(a, b, atol=1e-6):
+    np.testing.assert_allclose(a.mean, b.mean, atol=atol)
+    np.testing.assert_allclose(a.variances, b.variances, rtol=atol)
+    # Signs are fixed by convention, so the modes agree outright (the looser reading, up to
+    # sign, would follow from it).
+    np.testing.assert_allclose(a.modes, b.modes, atol=atol)
+    assert a.total_variance == pytest.approx(b.total_variance, rel=atol)
+
+
+@settings(deadline=None, max_examples=8)
+@given(order=st.permutations(list(range(12))), with_reference=st.booleans())
+def test_permuting_the_subjects_gives_the_same_model(training, order, with_reference):
+    """Issue 12: mean, modes and variances do not depend on which subject comes first."""
+    shapes, faces, _ = training
+    shapes = shapes[:12]
+    reference = shapes[5] if with_reference else None
+    one = build_model(shapes, faces, variance=1.0, reference=reference)
+    other = build_model(shapes[list(order)], faces, variance=1.0, reference=reference)
+    _assert_same_model(one, other)
+
+
+def test_without_a_reference_the_frame_is_the_population_pose_not_the_first_shape():
+    """Subjects lie in one scanner frame but turned by up to ~10 degrees; the first one by 25.
+    The model must sit in their common pose (the identity here), not the first subject's."""
+    base, faces = base_mesh()
+    rng = np.random.default_rng(7)
+    turns = Rotation.from_rotvec(rng.normal(0.0, 0.08, (16, 3)))
+    turns = Rotation.concatenate([Rotation.from_euler("z", 25, degrees=True), turns])
+    stretch = 1.0 + rng.normal(0.0, 0.05, (len(turns), 3))  # shape changes along the base's own axes
+    shapes = np.stack([t.apply(base * k) + rng.normal(0, 30, 3) for t, k in zip(turns, stretch)])
+    mean = build_model(shapes, faces, variance=1.0).mean
+    turned = np.degrees(Rotation.align_vectors(mean - mean.mean(0), base - base.mean(0))[0].magnitude())
+    average = np.degrees(Rotation.concatenate(turns).mean().magnitude())
+    assert turned == pytest.approx(average, abs=0.5) and turned < 5.0
 
 
 def test_generalisation_drops_to_zero_with_the_true_mode_count(training):

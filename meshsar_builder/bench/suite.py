@@ -5,8 +5,9 @@ Parts:
   mesh, the production echo's speed-up over the direct sum in the same run,
   Embree rays per second, and the GPU radar's seconds per view against that
   core (a `gpu` row, skipped with the reason without CUDA) (bench_radar);
-- geometry: seconds per subject for meshing, remeshing and registration, and
-  ms per SSM sample, at the demo recipe's settings on demo phantoms;
+- geometry: seconds per subject for meshing, remeshing and registration (all
+  groupwise rounds, and each round on its own), and ms per SSM sample, at the
+  demo recipe's settings on demo phantoms;
 - pipeline: the demo recipe's settings with fewer items, built with 1 and 2
   workers on the local pool and on a Dask LocalCluster: seconds per sample
   per stage, samples per minute, peak memory, scaling efficiency; with a
@@ -81,15 +82,15 @@ def _timed(fn, *args):
 
 def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
     """Seconds per subject for meshing, remeshing and registration; ms per SSM sample (demo settings)."""
+    from meshsar_builder.geometry.groupwise import register_groupwise
     from meshsar_builder.geometry.meshing import transfer_labels
-    from meshsar_builder.geometry.registration import register
     from meshsar_builder.geometry.remesh import remesh, simplify
     from meshsar_builder.geometry.ssm import build_model, sample_valid
     from meshsar_builder.pipeline.seeding import item_rng
 
     recipe = load(DEMO)
     timings = {"meshes": [], "remesh": [], "register": []}
-    remeshed, fits = [], []
+    remeshed = []
     with threadpool_limits(limits=1):
         for i in range(subjects):
             t, surf = _timed(demo_subject, i)
@@ -99,15 +100,15 @@ def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
             remeshed.append((v, f, transfer_labels(surf.verts, surf.labels, v)))
         t_verts, t_faces = simplify(*remeshed[0][:2], recipe.registration.template_vertices)
         t_labels = transfer_labels(remeshed[0][0], remeshed[0][2], t_verts)
-        for i, (v, f, labels) in enumerate(remeshed):
-            # With the vertex labels, as the register stage runs it (label-aware matches, landmarks).
-            t, (fitted, report) = _timed(register, t_verts, t_faces, v, f, recipe.registration,
-                                         item_rng(0, "bench", str(i)), t_labels, labels)
-            timings["register"].append(t)
-            fits.append({k: report[k] for k in ("mean_mm", "p95_mm", "flipped_faces", "self_intersections",
-                                                "label_agreement_by_structure")})
-            remeshed[i] = fitted
-        model = build_model(np.stack(remeshed), t_faces, recipe.ssm.variance)
+        # With the vertex labels and the groupwise rounds, as the register stage runs it.
+        t, (final, _, rounds) = _timed(register_groupwise, (t_verts, t_faces, t_labels), remeshed, recipe.registration,
+                                       lambda r, i: item_rng(0, "bench", f"{r}-{i}"))
+        timings["register"].append(t / subjects)
+        for rec in rounds:
+            timings[f"register_round{rec['round']}"] = [rec["seconds_per_subject"]]
+        fits = [{k: report[k] for k in ("mean_mm", "p95_mm", "flipped_faces", "self_intersections",
+                                        "label_agreement_by_structure")} for report in rounds[-1]["fits"]]
+        model = build_model(final, t_faces, recipe.ssm.variance)
         rng = np.random.default_rng(0)
         t, _ = _timed(lambda: [sample_valid(model, rng, recipe.ssm) for _ in range(samples)])
     result = {
@@ -117,6 +118,8 @@ def bench_geometry(out: Path, subjects: int = 3, samples: int = 20) -> dict:
         "seconds_each": timings,
         "ms_per_ssm_sample": 1000 * t / samples,
         "fits": fits,
+        "groupwise_rounds": [{"round": rec["round"], "movement_mm": rec["movement_mm"],
+                              "seconds_per_subject": rec["seconds_per_subject"]} for rec in rounds],
     }
     write_json(out / "geometry.json", result)
     return result

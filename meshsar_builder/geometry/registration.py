@@ -68,6 +68,13 @@ class RegistrationParams:
         Even an exact correspondence scores below 1 (the two tessellations draw each label
         boundary up to half an edge apart: 0.96-0.99 per structure at 2-2.5 mm edges), so
         the default sits below DESIGN's 0.97 (README, registration).
+    groupwise_rounds: most registrations to a groupwise template (the Procrustes mean of the
+        previous round's fits, groupwise.py) after the first one to the reference subject;
+        0 keeps the reference subject as the template.
+    groupwise_converge_mm: the rounds stop early once the template moved less than this
+        (mean vertex displacement from the previous template, after a rigid fit).
+    groupwise_smoothing: most Taubin steps on a groupwise template to clear self-
+        intersections and flipped faces of the plain mean before the round fails.
     """
 
     template: str = "median"
@@ -90,6 +97,9 @@ class RegistrationParams:
     landmark_weight: float = 0.1
     landmark_smoothing: float = 10.0
     min_label_agreement: float = 0.9
+    groupwise_rounds: int = 2
+    groupwise_converge_mm: float = 0.5
+    groupwise_smoothing: int = 10
 
     def __post_init__(self) -> None:
         if not self.template:
@@ -131,6 +141,12 @@ class RegistrationParams:
             raise ValueError(f"landmark_smoothing: must be >= 0, got {self.landmark_smoothing}")
         if not 0 <= self.min_label_agreement <= 1:
             raise ValueError(f"min_label_agreement: must be in [0, 1], got {self.min_label_agreement}")
+        if self.groupwise_rounds < 0:
+            raise ValueError(f"groupwise_rounds: must be >= 0, got {self.groupwise_rounds}")
+        if not self.groupwise_converge_mm >= 0:
+            raise ValueError(f"groupwise_converge_mm: must be >= 0, got {self.groupwise_converge_mm}")
+        if self.groupwise_smoothing < 0:
+            raise ValueError(f"groupwise_smoothing: must be >= 0, got {self.groupwise_smoothing}")
         if self.distance_samples < 100:
             raise ValueError(f"distance_samples: must be >= 100, got {self.distance_samples}")
 

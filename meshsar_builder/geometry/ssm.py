@@ -81,17 +81,35 @@ def rigid_fit(moving: np.ndarray, fixed: np.ndarray) -> np.ndarray:
     return aligned
 
 
-def procrustes_align(shapes: np.ndarray, iterations: int = 20, tol_mm: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    """Generalised Procrustes alignment by rotation and translation (scale kept).
+def population_pose(shapes: np.ndarray) -> np.ndarray:
+    """(n, 3) the mean of the shapes (s, n, 3) after centring each on its centroid, without rotating any.
 
-    shapes : (s, n, 3) float  ->  aligned (s, n, 3), mean (n, 3).
-    The mean starts as the first shape centred at the origin and is updated until it
-    moves less than tol_mm (root-mean-square over vertices) or `iterations` is reached;
-    its orientation stays that of the first shape.
+    The reference of the canonical frame when no template is given: a shape rotated onto it
+    takes the pose that is closest, summed over every subject, to where the subjects lie in
+    their scanner frame (RAS, DESIGN section 3), so the radar views keep their anatomical
+    meaning. A sum over subjects, so it does not depend on their order. (With no common
+    orientation among the inputs the pose is still order-free but anatomically arbitrary.)
     """
     shapes = np.asarray(shapes, dtype=np.float64)
-    mean = shapes[0] - shapes[0].mean(axis=0)
-    aligned = shapes
+    return (shapes - shapes.mean(axis=1, keepdims=True)).mean(axis=0)
+
+
+def procrustes_align(
+    shapes: np.ndarray, iterations: int = 20, tol_mm: float = 1e-9, reference: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised Procrustes alignment by rotation and translation (scale kept), in a canonical frame.
+
+    shapes : (s, n, 3) float, reference : (n, 3) float or None  ->  aligned (s, n, 3), mean (n, 3).
+    The mean starts as the reference (else the first shape) centred at the origin and is
+    updated until it moves less than tol_mm (root-mean-square over vertices) or `iterations`
+    is reached. The converged mean is then rigidly fitted to the reference (e.g. the
+    template, in its canonical frame), or without one to population_pose(shapes), and the
+    shapes are aligned to it: the frame no longer follows whichever subject came first, so
+    permuting the subjects leaves the result unchanged up to rounding.
+    """
+    shapes = np.asarray(shapes, dtype=np.float64)
+    start = shapes[0] if reference is None else np.asarray(reference, dtype=np.float64)
+    mean = start - start.mean(axis=0)
     for _ in range(iterations):
         aligned = np.stack([rigid_fit(shape, mean) for shape in shapes])
         new_mean = rigid_fit(aligned.mean(axis=0), mean)
@@ -99,32 +117,43 @@ def procrustes_align(shapes: np.ndarray, iterations: int = 20, tol_mm: float = 1
         mean = new_mean
         if moved < tol_mm:
             break
-    return aligned, mean
+    mean = rigid_fit(mean, population_pose(shapes) if reference is None else reference)
+    return np.stack([rigid_fit(shape, mean) for shape in shapes]), mean
 
 
 def _pca(aligned: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean (n, 3), modes (r, n, 3) and variances (r,) of aligned shapes (s, n, 3), for the
-    r <= s - 1 modes of non-zero variance (the others are arbitrary directions outside the data)."""
+    r <= s - 1 modes of non-zero variance (the others are arbitrary directions outside the data).
+
+    Each mode's sign is fixed (its entry of largest magnitude is positive): SVD leaves it
+    arbitrary, and it would otherwise flip with the order of the shapes.
+    """
     count, n_verts, _ = aligned.shape
     mean = aligned.mean(axis=0)
     centred = (aligned - mean).reshape(count, 3 * n_verts)
     _, singular, vt = np.linalg.svd(centred, full_matrices=False)
     variances = singular**2 / max(count - 1, 1)
     rank = int(np.count_nonzero(variances > variances.sum() * 1e-12))
-    return mean, vt[:rank].reshape(rank, n_verts, 3), variances[:rank]
+    vt = vt[:rank]
+    vt *= np.sign(vt[np.arange(rank), np.abs(vt).argmax(axis=1)])[:, None]
+    return mean, vt.reshape(rank, n_verts, 3), variances[:rank]
 
 
 def build_model(
-    shapes: np.ndarray, faces: np.ndarray, variance: float, procrustes_iterations: int = 20, labels: np.ndarray | None = None
+    shapes: np.ndarray, faces: np.ndarray, variance: float, procrustes_iterations: int = 20,
+    labels: np.ndarray | None = None, reference: np.ndarray | None = None,
 ) -> ShapeModel:
     """Shape model of corresponding shapes : (s, n, 3) float with faces : (m, 3) int, labels : (n,) uint8.
 
     Keeps the fewest leading modes whose cumulative variance reaches `variance` of the total.
+    The model lives in the frame of `reference` : (n, 3) (the template), or without one in
+    the subjects' population pose (see procrustes_align); either way the subjects' order
+    does not change it.
     """
     shapes = np.asarray(shapes, dtype=np.float64)
     if shapes.ndim != 3 or shapes.shape[2] != 3 or len(shapes) < 2:
         raise ValueError(f"shapes: need (s >= 2, n, 3), got {shapes.shape}")
-    aligned, _ = procrustes_align(shapes, procrustes_iterations)
+    aligned, _ = procrustes_align(shapes, procrustes_iterations, reference=reference)
     mean, modes, variances = _pca(aligned)
     total = float(variances.sum())
     if not len(variances):

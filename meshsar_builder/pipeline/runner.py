@@ -11,7 +11,11 @@ bookkeeping every stage shares:
   matches and whose outputs exist is skipped;
 - failures: an exception in an item is recorded (stage, item, type, message)
   and the batch goes on; failures.json and the summary list them at the end;
-- temporaries left by a killed run are removed before a stage runs.
+- temporaries left by a killed run are removed before a stage runs;
+- passes: a stage whose items feed another round of itself (the register stage's
+  groupwise template) is planned and run again while its `again` hook says so; each
+  pass is planned after the previous one finished, its items still run side by side
+  and are skipped when up to date, and `Results.passes` counts the passes run so far.
 
 The runner never imports a stage; stages import the library.
 """
@@ -92,6 +96,9 @@ class Stage:
     # GPU asked for and none there). Called once when the build starts, before any stage
     # runs, so a build fails in seconds instead of at the stage or in every item.
     check: Callable[[Context], object] | None = None
+    # Runs after each pass (items, then finish): True plans and runs the stage once more.
+    # results.of(stage) then holds the last pass's records, results.passes[stage] the count.
+    again: Callable[[Context, "Results"], bool] | None = None
 
 
 @dataclass
@@ -101,6 +108,7 @@ class Results:
     done: dict[str, dict[str, dict]] = field(default_factory=dict)
     failures: list[dict] = field(default_factory=list)
     summary: list[dict] = field(default_factory=list)
+    passes: dict[str, int] = field(default_factory=dict)  # per stage, passes completed in this build
 
     def of(self, stage: str) -> dict[str, dict]:
         return self.done.get(stage, {})
@@ -316,12 +324,8 @@ def _outcomes(ctx: Context, stage: Stage, todo: list[Item], pool):
             yield future.result()
 
 
-def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bool = False) -> dict:
-    """Plan a stage, skip what is up to date, run the rest; return its summary row."""
-    t0 = time.perf_counter()
-    stage_dir = ctx.stage_dir(stage.name)
-    stage_dir.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(stage_dir)
+def _run_pass(ctx: Context, stage: Stage, results: Results, pool, force: bool) -> tuple[int, int, list[dict]]:
+    """Plan and run one pass of a stage; return (items planned, items run, failures)."""
     items = stage.plan(ctx, results)
     ids = [it.id for it in items]
     if len(set(ids)) != len(ids):
@@ -349,21 +353,47 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bo
             failed.append(fail)
             bar.write(f"FAILED {stage.name}/{fail['item']}: {fail['error']}: {fail['message']}")
     bar.close()
-    remove_stale_temporaries(stage_dir)  # a worker killed mid-write (its item was rerun) leaves one
+    remove_stale_temporaries(ctx.stage_dir(stage.name))  # a worker killed mid-write (its item was rerun) leaves one
     # Keep plan order, so later stages see items in the same order whatever finished first.
     results.done[stage.name] = {i: done[i] for i in ids if i in done}
-    if stage.finish is not None:
-        try:
-            stage.finish(ctx, results)
-        except Exception as e:  # recorded like an item, so the summary and exit status show it
-            failed.append({"stage": stage.name, "item": "(finish)", "error": type(e).__name__,
-                           "message": str(e), "inputs": [], "traceback": traceback.format_exc(limit=6)})
+    results.passes[stage.name] = results.passes.get(stage.name, 0) + 1
+    return len(items), len(todo), failed
+
+
+def _hook(stage: Stage, name: str, ctx: Context, results: Results, failed: list[dict]):
+    """Call stage.finish or stage.again; an exception is recorded like an item's (None returned)."""
+    try:
+        return getattr(stage, name)(ctx, results)
+    except Exception as e:  # recorded like an item, so the summary and exit status show it
+        failed.append({"stage": stage.name, "item": f"({name})", "error": type(e).__name__,
+                       "message": str(e), "inputs": [], "traceback": traceback.format_exc(limit=6)})
+        return None
+
+
+def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bool = False) -> dict:
+    """Plan a stage, skip what is up to date, run the rest (pass after pass while stage.again
+    says so); return its summary row, counting the items of every pass."""
+    t0 = time.perf_counter()
+    stage_dir = ctx.stage_dir(stage.name)
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(stage_dir)
+    results.passes.pop(stage.name, None)
+    planned = todo = 0
+    failed: list[dict] = []
+    while True:
+        n_items, n_todo, pass_failed = _run_pass(ctx, stage, results, pool, force)
+        planned, todo = planned + n_items, todo + n_todo
+        failed += pass_failed
+        if stage.finish is not None:
+            _hook(stage, "finish", ctx, results, failed)
+        if stage.again is None or not _hook(stage, "again", ctx, results, failed):
+            break
     results.failures.extend(sorted(failed, key=lambda f: f["item"]))
     row = {
         "stage": stage.name,
-        "items": len(items),
-        "ran": len(todo) - len(failed),
-        "skipped": len(items) - len(todo),
+        "items": planned,
+        "ran": todo - len(failed),
+        "skipped": planned - todo,
         "failed": len(failed),
         "seconds": round(time.perf_counter() - t0, 2),
     }
