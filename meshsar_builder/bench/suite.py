@@ -231,8 +231,9 @@ def bench_recipe(out: Path, recipe: Path, workers: int = 2) -> dict:
     wall = report["wall_seconds"]
     stages = {}
     for row in report["summary"]:
-        records = [read_json(p) for p in sorted((build_dir / row["stage"]).glob("*.json"))]
-        item_seconds = [rec["seconds"] for rec in records if "seconds" in rec and "item" in rec]
+        # Item sidecars of every pass (the register stage's groupwise rounds sit in round<r>/ folders).
+        records = [read_json(p) for p in sorted((build_dir / row["stage"]).rglob("*.json"))]
+        item_seconds = [rec["seconds"] for rec in records if rec.get("stage") == row["stage"] and "item" in rec]
         stages[row["stage"]] = {"items": row["items"], "failed": row["failed"], "wall_seconds": row["seconds"],
                                 "share_of_wall": row["seconds"] / wall, "item_seconds_sum": float(np.sum(item_seconds)),
                                 "seconds_per_item": float(np.mean(item_seconds)) if item_seconds else 0.0}
