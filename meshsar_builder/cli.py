@@ -99,7 +99,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
         print(f"error: --seeds: expected comma-separated integers, got {args.seeds!r}", file=sys.stderr)
         return 2
     variants = tuple(args.variants.split(",")) if args.variants else VARIANTS
-    print(markdown(ablate(args.config, args.data, args.split, seeds, variants, args.epochs, args.device, args.out)))
+    print(markdown(ablate(args.config, args.data, args.split, seeds, variants, args.epochs, args.device, args.out,
+                          args.samples)))
     return 0
 
 
@@ -179,6 +180,8 @@ def parser() -> argparse.ArgumentParser:
     ab.add_argument("--epochs", type=int, help="shorten every run to this many epochs (warm-up, ramp and "
                                                "intervals scale with it; default: the config's)")
     ab.add_argument("--device", choices=["cpu", "cuda", "auto"], help="override [run] device")
+    ab.add_argument("--samples", type=int, default=20_000,
+                    help="surface points per mesh for the distance metrics (default 20000, as evaluate)")
     ab.add_argument("--out", help="folder (default DATA/ablations/<config name>-<split>[-e<epochs>])")
     ab.set_defaults(func=cmd_ablate)
     from meshsar_builder.bench.suite import PARTS

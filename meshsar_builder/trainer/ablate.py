@@ -88,23 +88,26 @@ def ablate(config: str | os.PathLike, data: str | os.PathLike, split: str = "see
     first_view = read_index(data)["views"][0]["name"]
     folder = Path(out) if out is not None else (
         data / "ablations" / f"{base['name']}-{split}{'' if epochs is None else f'-e{epochs}'}")
-    runs, baselines = {}, {}
-    for variant in variants:
-        for seed in seeds:
+    runs, baselines = {v: {} for v in variants}, {}
+    # Seed by seed, every variant: an ablation stopped part-way has compared the variants on equal terms.
+    for seed in seeds:
+        for variant in variants:
             table = variant_table(base, variant, seed, first_view, epochs)
             run = folder / f"{variant}-seed-{seed}"
             parsed = parse_config(tomli_w.dumps(table), str(run / "config.toml"))
             train(parsed, data, split, run, progress=progress)
             summary_file = run / f"eval-{split}" / "summary.json"
             if not summary_file.exists():
-                evaluate(run, data, split, renders=0, device=parsed.run.device, samples=samples, progress=progress)
+                # The baselines see no images and every run has the same training ids: score them once.
+                evaluate(run, data, split, renders=0, device=parsed.run.device, samples=samples, progress=progress,
+                         baselines=not baselines)
             summary = read_json(summary_file)
             kind = next(m for m in summary["all"] if m not in BASELINES)
-            runs.setdefault(variant, {})[str(seed)] = {
+            baselines = baselines or {m: _means(summary, m) for m in BASELINES if m in summary["all"]}
+            runs[variant][str(seed)] = {
                 **_means(summary, kind),
                 "train_seconds": float(sum(row["seconds"] for row in read_log(run / "log.csv"))),
             }
-            baselines = {m: _means(summary, m) for m in BASELINES}  # the same for every run: no images, same train ids
     result = {
         "config": str(config), "data": str(data), "split": split, "seeds": list(seeds), "epochs": epochs,
         "runs": runs, "baselines": baselines,

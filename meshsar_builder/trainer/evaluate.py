@@ -121,12 +121,13 @@ def training_shapes(run: Path, data: Path, split: str) -> list[tuple[np.ndarray,
 
 def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, split: str = "seed-0",
              renders: int | None = None, device: str = "cpu", samples: int = 20_000, progress: bool = True,
-             checkpoint: str = "best", compare: tuple[str | os.PathLike, ...] = ()) -> dict:
+             checkpoint: str = "best", compare: tuple[str | os.PathLike, ...] = (), baselines: bool = True) -> dict:
     """Evaluate a run (and the runs in `compare`) on the test split of `split`; returns the summary
     (see module docstring), written under RUN/eval-<split>.
 
     data: the build folder (default: the one the run was trained on); renders: samples drawn
-    (None: all); checkpoint: "best" (validation) or "last".
+    (None: all); checkpoint: "best" (validation) or "last"; baselines: False leaves out the
+    template and mean-shape rows (an ablation scores them once for all its runs).
     """
     run = Path(run)
     device = pick_device(device, 0)
@@ -144,7 +145,7 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         learned.append((method, net, views, [index["channels"].index(c) for c in inf["channels"]]))
     dataset = MeshSARDataset(data, "test", seed=split_seed(split))
     baselines = {"template": template_mesh(config.model.template_level, info["template_radius_mm"]),
-                 "mean_shape": mean_shape(training_shapes(run, data, split))}
+                 "mean_shape": mean_shape(training_shapes(run, data, split))} if baselines else {}
     rows, pairs = [], []
     for i in tqdm(range(len(dataset)), desc="evaluate", disable=not progress):
         sample = dataset[i]
