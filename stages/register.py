@@ -21,8 +21,10 @@ sidecar holding the fit report (surface distances, per-structure label agreement
 label landmarks used) and the round. `register/template.ply` is the template of the last
 round (the model's frame, stages/ssm.py); `register/groupwise.json` records every round:
 template movement, smoothing, fits accepted, their distances, label agreement and time.
-A fit outside the thresholds (surface distance, folds, per-structure label agreement) is
-a named failure, not a silent bad shape. Version 3: groupwise template.
+A fit outside the thresholds (surface distance, folds, and in the last round per-structure
+label agreement) is a named failure, not a silent bad shape. Version 3: groupwise
+template; version 4: label agreement by face strip (landmarks.label_agreement), judged in
+the last round only.
 """
 
 from __future__ import annotations
@@ -147,7 +149,7 @@ def run(ctx: Context, item: Item) -> dict:
     t_verts, t_faces, t_labels = read_ply(template_path)
     rng = item_rng(ctx.recipe.seed, NAME, item.id)
     fitted, report = register(t_verts, t_faces, s_verts, s_faces, ctx.recipe.registration, rng, t_labels, s_labels)
-    accept(report, ctx.recipe.registration)
+    accept(report, ctx.recipe.registration, correspondence=item.data["final"])
     write_ply(ctx.stage_dir(NAME) / f"{item.id}.ply", fitted, t_faces, t_labels)
     return {"fit": report, **item.data}
 
@@ -213,4 +215,4 @@ def finish(ctx: Context, results: Results) -> None:
                                            "max_rounds": ctx.recipe.registration.groupwise_rounds})
 
 
-STAGE = Stage(name=NAME, version=3, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=4, plan=plan, run=run, finish=finish, again=again)

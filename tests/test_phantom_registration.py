@@ -10,7 +10,6 @@ from meshsar_builder.bench.suite import DEMO, demo_subject
 from meshsar_builder.geometry.meshing import transfer_labels
 from meshsar_builder.geometry.registration import accept, register
 from meshsar_builder.geometry.remesh import remesh, simplify
-from meshsar_builder.pipeline.errors import MeshError
 from meshsar_builder.pipeline.recipe import load
 
 pytestmark = pytest.mark.slow
@@ -30,18 +29,22 @@ def test_phantom_subjects_register_and_keep_structure_labels():
     tv, tf = simplify(surfaces[0][0], surfaces[0][1], recipe.registration.template_vertices)
     tl = transfer_labels(surfaces[0][0], surfaces[0][2], tv)
     for i, (v, f, labels) in enumerate(surfaces[1:], start=1):
-        fitted, report = register(tv, tf, v, f, recipe.registration, np.random.default_rng(i), tl, labels)
-        accept(report, recipe.registration)  # mean <= 0.5 mm, p95 <= 1.5 mm, no flips or self-intersections
-        assert report["label_agreement"] >= 0.95, report["label_agreement"]
+        _, report = register(tv, tf, v, f, recipe.registration, np.random.default_rng(i), tl, labels)
+        # mean <= 0.5 mm, p95 <= 1.5 mm, no flips or self-intersections; to one reference subject
+        # (a first groupwise round) the structures may still sit a little apart, measured >= 0.964.
+        accept(report, recipe.registration, correspondence=False)
+        assert min(report["label_agreement_by_structure"].values()) >= 0.95, report["label_agreement_by_structure"]
 
 
 def test_every_phantom_full_whole_heart_subject_is_accepted(tmp_path):
-    """Issue 16: all 20 whole-heart subjects of manifests/phantom_full.toml register (the stage's
-    seeding and median template), at the smoke recipe's coarse resolution to stay quick."""
+    """Issue 16: all 20 whole-heart subjects of manifests/phantom_full.toml are accepted through
+    the stage's groupwise rounds from its median template, at the smoke recipe's coarse
+    resolution to stay quick."""
     from pathlib import Path
 
-    from meshsar_builder.geometry.meshing import labels_to_surface
     from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.geometry.groupwise import register_groupwise
+    from meshsar_builder.geometry.meshing import labels_to_surface
     from meshsar_builder.geometry.phantom_heart import write_mmwhs_subject
     from meshsar_builder.geometry.registration import choose_template
     from meshsar_builder.pipeline.seeding import item_rng
@@ -64,14 +67,11 @@ def test_every_phantom_full_whole_heart_subject_is_accepted(tmp_path):
     params = smoke.registration
     tv, tf = simplify(*surfaces[chosen][:2], params.template_vertices)
     tl = transfer_labels(surfaces[chosen][0], surfaces[chosen][2], tv)
-    rejected = {}
-    for subject, (v, f, labels) in surfaces.items():
-        _, report = register(tv, tf, v, f, params, item_rng(full.seed, "register", subject), tl, labels)
-        try:
-            accept(report, params)
-        except MeshError as error:  # collect every rejection, then fail naming them all
-            rejected[subject] = str(error)
-    assert rejected == {}
+    names = list(surfaces)
+    # The stage's rounds; any rejection (label agreement judged in the last round) raises naming the subject.
+    _, _, rounds = register_groupwise((tv, tf, tl), list(surfaces.values()), params,
+                                      lambda r, i: item_rng(full.seed, "register", f"round{r}/{names[i]}"))
+    assert len(rounds[-1]["fits"]) == spec.subjects
 
 
 @pytest.fixture(scope="module")
@@ -111,8 +111,8 @@ def test_phantom_heart_known_warp_is_recovered_vertex_by_vertex(labelled_heart, 
     from tests.test_registration import assert_warp_recovered, recover_warp
 
     verts, faces, labels, warps = labelled_heart
-    error, report, truth = recover_warp(verts, faces, labels, 2000, warps[warp], 3.0)
-    assert_warp_recovered(error, report, truth)
+    error, report = recover_warp(verts, faces, labels, 2000, warps[warp], 3.0)
+    assert_warp_recovered(error, report)
 
 
 @pytest.fixture(scope="module")

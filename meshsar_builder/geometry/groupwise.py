@@ -129,21 +129,25 @@ def register_groupwise(
     is the one the final fits were fitted to) and one record per round: round, its
     template's movement (None for round 0), seconds per subject, the fits' reports, and
     next_template (mean_template's report) unless it is the last. A rejected fit raises
-    (registration.accept).
+    (registration.accept; label agreement is judged in the last round, as in the stage).
     """
     t_verts, t_faces, t_labels = template
     rounds, templates, moved, round_ = [], [t_verts], None, 0
     while True:
         record, fits, reports = {"round": round_, "movement_mm": moved}, [], []
         t0 = time.perf_counter()
+        final = final_round(round_, moved, params)
         for index, (verts, faces, labels) in enumerate(subjects):
             fitted, report = register(t_verts, t_faces, verts, faces, params, rng(round_, index), t_labels, labels)
-            accept(report, params)
+            try:
+                accept(report, params, correspondence=final)
+            except MeshError as error:
+                raise MeshError(f"subject {index}, round {round_}: {error}") from error
             fits.append(fitted)
             reports.append(report)
         record |= {"seconds_per_subject": (time.perf_counter() - t0) / len(subjects), "fits": reports}
         rounds.append(record)
-        if final_round(round_, moved, params):
+        if final:
             return np.stack(fits), np.stack(templates), rounds
         t_verts, summary = mean_template(np.stack(fits), t_faces, t_verts, params.groupwise_smoothing)
         templates.append(t_verts)

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
+from meshsar_builder.geometry.meshing import point_to_surface
 from meshsar_builder.geometry.structures import STRUCTURES
 
 NAMES = {value: name for name, value in STRUCTURES.items()}
@@ -105,18 +105,24 @@ def face_labels(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 
 def label_agreement(
-    fitted: np.ndarray, template_labels: np.ndarray, subject_verts: np.ndarray, subject_labels: np.ndarray,
-    min_vertices: int = 10,
+    fitted: np.ndarray, template_labels: np.ndarray, subject_verts: np.ndarray, subject_faces: np.ndarray,
+    subject_labels: np.ndarray, min_vertices: int = 10,
 ) -> tuple[float, dict[str, float]]:
-    """Overall and per-structure fraction of template vertices whose nearest subject vertex has their label.
+    """Overall and per-structure fraction of template vertices that land on their own structure.
 
-    fitted : (n, 3), template_labels : (n,), subject_verts : (p, 3), subject_labels : (p,).
+    fitted : (n, 3), template_labels : (n,), subject_verts : (p, 3), subject_faces : (q, 3),
+    subject_labels : (p,). A vertex lands on structure s when the subject face holding its
+    closest surface point has a corner labelled s. Vertex labels place a boundary between two
+    structures only to within the strip of faces whose corners carry both, so a point in that
+    strip is on either; splitting the strip by nearest vertex instead scores an exact
+    correspondence 0.96-0.99 (two tessellations draw the split up to half an edge apart).
     Structures with fewer than `min_vertices` template vertices are left out of the
     per-structure figures (a few stray vertices give no meaningful fraction).
     """
-    _, nearest = cKDTree(np.asarray(subject_verts, dtype=np.float64)).query(fitted)
+    subject_faces = np.asarray(subject_faces)
+    _, face = point_to_surface(fitted, subject_verts, subject_faces)
     template_labels = np.asarray(template_labels)
-    agree = template_labels == np.asarray(subject_labels)[nearest]
+    agree = (np.asarray(subject_labels)[subject_faces[face]] == template_labels[:, None]).any(axis=1)
     per = {
         structure_name(s): float(agree[template_labels == s].mean())
         for s in np.unique(template_labels)
