@@ -282,6 +282,7 @@ def test_accept_names_the_structures_below_the_label_agreement():
     with pytest.raises(MeshError, match=r"label agreement < 0.97 for rv 0.930, ra 0.950$"):
         accept(report, RegistrationParams(min_label_agreement=0.97))
     accept(report, RegistrationParams(min_label_agreement=0.9))
+    accept(report, RegistrationParams(min_label_agreement=0.97), correspondence=False)  # an earlier groupwise round
 
 
 def long_axis_warps(verts: np.ndarray, apex: np.ndarray, base: np.ndarray) -> dict:
