@@ -69,15 +69,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                                   "failures")}))
         return 1 if result["failures"] else 0
     parts = list(PARTS) if args.part == "all" else [args.part]
-    for part in run(parts, Path(args.out)):
-        print(f"{part}: {Path(args.out) / (part + '.json')}")
+    for part in run(parts, Path(args.out), args.device):
+        name = f"{part}-{args.device}" if part == "trainer" and args.device != "cpu" else part
+        print(f"{part}: {Path(args.out) / (name + '.json')}")
     return 0
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.train import train
 
-    print(train(args.config, args.data, args.split, args.out).run)
+    print(train(args.config, args.data, args.split, args.out, device=args.device).run)
     return 0
 
 
@@ -150,6 +151,7 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--data", required=True, help="built dataset folder")
     t.add_argument("--split", default="seed-0")
     t.add_argument("--out", help="run folder (default DATA/runs/<config name>-<split>)")
+    t.add_argument("--device", choices=["cpu", "cuda", "auto"], help="override [run] device")
     t.set_defaults(func=cmd_train)
     e = sub.add_parser("evaluate", help="metrics, tables and renders of a trained run on a split")
     e.add_argument("run", help="run folder")
@@ -192,6 +194,8 @@ def parser() -> argparse.ArgumentParser:
     be.add_argument("--recipe", help="pipeline only: build this recipe from scratch and time it against the "
                                      "paper-scale target (writes pipeline-<name>.json)")
     be.add_argument("--workers", type=int, default=2, help="with --recipe: local worker processes (default 2)")
+    be.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+                    help="trainer part: where steps are timed (cuda: fp32 and mixed precision; default cpu)")
     be.set_defaults(func=cmd_bench)
     return p
 

@@ -13,7 +13,8 @@ Parts:
   per stage, samples per minute, peak memory, scaling efficiency; with a
   recipe (`--recipe manifests/phantom_full.toml`), one from-scratch build of it
   against the paper-scale target (bench_recipe);
-- trainer: ms per training step on the CPU at the default and paper sizes (bench_trainer).
+- trainer: ms per training step at the default and paper sizes, on the CPU, or
+  with `--device cuda` on a GPU in fp32 and mixed precision (bench_trainer).
 Every part runs its measurements with one BLAS thread, like the stages do.
 """
 
@@ -259,13 +260,15 @@ def bench_recipe(out: Path, recipe: Path, workers: int = 2) -> dict:
     return result
 
 
-def bench_trainer(out: Path) -> dict:
+def bench_trainer(out: Path, device: str = "cpu") -> dict:
     from meshsar_builder.bench.trainer import run
 
-    return run(out)
+    return run(out, device)
 
 
-def run(parts: list[str], out: Path = Path("build/bench")) -> dict:
+def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
+    """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision)."""
     out.mkdir(parents=True, exist_ok=True)
-    benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline, "trainer": bench_trainer}
+    benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline,
+               "trainer": lambda folder: bench_trainer(folder, device)}
     return {part: benches[part](out) for part in parts}

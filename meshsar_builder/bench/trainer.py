@@ -1,10 +1,13 @@
-"""Trainer benchmark: milliseconds per training step on the CPU, at the default and paper sizes.
+"""Trainer benchmark: milliseconds per training step on the CPU or a GPU, at the default and paper sizes.
 
 A step is forward, every loss, backward and the Adam update, on a synthetic batch
 shaped like the demo dataset (3 views of 2 x 128 x 128 images, a 2,562-vertex
 ellipsoid as ground truth, the default radar's decimated echo). Timed without and
 with the radar term (it is off during the warm-up epochs). Every timing is the
 minimum of a few repeats after a warm-up step: the machines this runs on are shared.
+On CUDA (`meshsar bench trainer --device cuda`) every timing is also taken with
+mixed precision ([run] amp: float16 autocast and the gradient scaler), and the
+result goes to trainer-cuda.json beside the CPU's trainer.json.
 """
 
 from __future__ import annotations
@@ -16,11 +19,13 @@ import numpy as np
 import torch
 import trimesh
 
+from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import write_json
 from meshsar_builder.radar.differentiable import echo_torch
 from meshsar_builder.radar.imaging import ImageParams
 from meshsar_builder.radar.params import RadarParams, index_metadata
-from meshsar_builder.trainer.train import DatasetGeometry, batch_losses, build_model, load_config, sample_generators
+from meshsar_builder.trainer.train import (DatasetGeometry, autocast_factory, build_model, load_config,
+                                           sample_generators, step_terms)
 
 CONFIGS = Path(__file__).resolve().parents[2] / "manifests" / "train"
 REPEATS = 3
@@ -39,44 +44,70 @@ def synthetic_batch(batch_size: int, geometry: DatasetGeometry, radar: RadarPara
             "sar": torch.rand(batch_size, len(geometry.view_names), 2, 128, 128, generator=torch.Generator().manual_seed(0))}
 
 
-def step_ms(config_name: str, radar_on: bool, geometry: DatasetGeometry, batch: dict) -> float:
-    """Minimum milliseconds of one training step of a shipped config's model and losses."""
+def step_ms(config_name: str, radar_on: bool, geometry: DatasetGeometry, batch: dict,
+            device: torch.device = torch.device("cpu"), amp: bool = False) -> float:
+    """Minimum milliseconds of one training step of a shipped config's model and losses, as train() runs it
+    (autocast over the forward when amp, the gradient scaler on CUDA)."""
     config = load_config(CONFIGS / f"{config_name}.toml")
     torch.manual_seed(0)
     model = build_model(config, {"frames": geometry.frames, "fov_mm": geometry.fov_mm,
-                                 "channels": list(config.data.channels), "template_radius_mm": 50.0})
+                                 "channels": list(config.data.channels), "template_radius_mm": 50.0}).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.optim.lr)
+    scaler = torch.amp.GradScaler(device.type, enabled=amp and device.type == "cuda")
+    autocast = autocast_factory(device, amp)
     sub = {k: v[: config.data.batch_size] for k, v in batch.items()}
+    sar = sub["sar"].to(device)
     best = np.inf
     for repeat in range(REPEATS + 1):
+        synchronize(device)
         start = time.perf_counter()
-        meshes = model(sub["sar"])
-        terms = batch_losses(meshes, model, sub, geometry, config, config.radar_loss.weight if radar_on else 0.0,
-                             sample_generators(0, repeat, [str(k) for k in range(len(sub["verts"]))]))
+        terms = step_terms(model, model, sub, sar, geometry, config, config.radar_loss.weight if radar_on else 0.0,
+                           sample_generators(0, repeat, [str(k) for k in range(len(sub["verts"]))]), autocast)
         optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        optimizer.step()
+        scaler.scale(terms["total"]).backward()
+        scaler.step(optimizer)
+        scaler.update()
+        synchronize(device)
+        if not torch.isfinite(terms["total"]):
+            raise FloatingPointError(f"{config_name}: non-finite loss in a benchmark step (amp={amp})")
         if repeat:  # the first step warms allocators and kernels
             best = min(best, time.perf_counter() - start)
     return 1000 * best
 
 
-def run(out_dir: str | Path) -> dict:
-    """Time the default and paper configs, write out_dir/trainer.json, return its contents."""
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work, so host timers measure it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def run(out_dir: str | Path, device: str = "cpu") -> dict:
+    """Time the default and paper configs on `device`, write out_dir/trainer.json (trainer-cuda.json for a GPU),
+    return its contents. On CUDA each is timed in fp32 and with mixed precision (amp)."""
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("bench trainer --device cuda: CUDA is not available")
     radar = RadarParams()
     geometry = DatasetGeometry.from_index(index_metadata(radar, ImageParams()))
     batch = synthetic_batch(4, geometry, radar)
-    result = {"device": "cpu", "threads": torch.get_num_threads(), "repeats": REPEATS}
+    result = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+              "torch": torch.__version__, "threads": torch.get_num_threads(), "repeats": REPEATS}
+    precisions = {"fp32": False, "amp": True} if device.type == "cuda" else {"fp32": False}
     for name in ("default", "paper"):
         config = load_config(CONFIGS / f"{name}.toml")
-        result[name] = {
-            "batch_size": config.data.batch_size,
-            "ms_per_step": step_ms(name, False, geometry, batch),
-            "ms_per_step_with_radar": step_ms(name, True, geometry, batch),
-        }
-        entry = result[name]
-        entry["ms_per_sample"] = entry["ms_per_step"] / config.data.batch_size
-        entry["radar_step_ratio"] = entry["ms_per_step_with_radar"] / entry["ms_per_step"]
+        result[name] = {"batch_size": config.data.batch_size}
+        for precision, amp in precisions.items():
+            entry = result[name] if precision == "fp32" else result[name].setdefault(precision, {})
+            entry["ms_per_step"] = step_ms(name, False, geometry, batch, device, amp)
+            entry["ms_per_step_with_radar"] = step_ms(name, True, geometry, batch, device, amp)
+            entry["steps_per_second"] = 1000 / entry["ms_per_step"]
+            entry["steps_per_second_with_radar"] = 1000 / entry["ms_per_step_with_radar"]
+            entry["ms_per_sample"] = entry["ms_per_step"] / config.data.batch_size
+            entry["radar_step_ratio"] = entry["ms_per_step_with_radar"] / entry["ms_per_step"]
+        if "amp" in precisions:
+            result[name]["amp_speedup"] = result[name]["ms_per_step"] / result[name]["amp"]["ms_per_step"]
+            result[name]["amp_speedup_with_radar"] = (result[name]["ms_per_step_with_radar"]
+                                                      / result[name]["amp"]["ms_per_step_with_radar"])
     result["paper_over_default_per_sample"] = result["paper"]["ms_per_sample"] / result["default"]["ms_per_sample"]
-    write_json(Path(out_dir) / "trainer.json", result)
+    write_json(Path(out_dir) / ("trainer.json" if device.type == "cpu" else "trainer-cuda.json"), result)
     return result

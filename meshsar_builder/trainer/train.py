@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import math
 import os
@@ -244,6 +245,12 @@ def pick_device(name: str, local_rank: int) -> torch.device:
     return torch.device("cpu")
 
 
+def autocast_factory(device: torch.device, amp: bool):
+    """The forward's autocast context-manager factory: float16 on CUDA, bfloat16 on a CPU; off unless amp."""
+    dtype = torch.float16 if device.type == "cuda" else torch.bfloat16
+    return lambda: torch.autocast(device.type, dtype=dtype, enabled=amp)
+
+
 def all_reduce(values: torch.Tensor) -> torch.Tensor:
     """Sum of a CPU tensor over ranks; itself when not distributed."""
     if torch.distributed.is_initialized():
@@ -400,13 +407,16 @@ class TrainResult:
 
 
 def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, split: str = "seed-0",
-          out: str | os.PathLike | None = None, progress: bool = True) -> TrainResult:
+          out: str | os.PathLike | None = None, progress: bool = True, device: str | None = None) -> TrainResult:
     """Train (or resume) a run; returns its folder, model and epoch log.
 
     data: a build folder with index.json and splits/; split: seed-<N>; out: the run
-    folder (default DATA/runs/<config name>-<split>).
+    folder (default DATA/runs/<config name>-<split>); device: overrides [run] device
+    (where a run trains is not part of what it is: a run resumes on another device).
     """
     config = config if isinstance(config, TrainConfig) else load_config(config)
+    if device is not None:
+        config = dataclasses.replace(config, run=dataclasses.replace(config.run, device=device))
     data = Path(data)
     seed_ = split_seed(split)
     run = Path(out) if out is not None else data / "runs" / f"{config.name}-{split}"
@@ -442,18 +452,15 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     board = tensorboard_writer(run) if rank == 0 else None
     if rank == 0:
         write_bytes(run / "config.toml", config.text.encode("utf-8"))
-        write_json(run / "run.json", {**info, "config": config.as_dict(), "world_size": world,
+        write_json(run / "run.json", {**info, "config": config.as_dict(), "world_size": world, "device": str(device),
+                                      "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
                                       "train_ids": train_ids, "val_ids": val_ids})
     # Encoder scales no stage samples leave parameters without gradients, which DDP must be told.
     unused = set(range(len(config.model.encoder_channels))) - {s for st in config.model.stage_scales for s in st}
     net = torch.nn.parallel.DistributedDataParallel(
         model, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=bool(unused),
     ) if world > 1 else model
-    autocast_dtype = torch.float16 if device.type == "cuda" else torch.bfloat16
-
-    def autocast():
-        return torch.autocast(device.type, dtype=autocast_dtype, enabled=amp)
-
+    autocast = autocast_factory(device, amp)
     bar = tqdm(total=config.optim.epochs, initial=start, desc=f"train {config.name}", unit="epoch",
                disable=not progress or rank != 0)
     for epoch in range(start, config.optim.epochs):
