@@ -211,8 +211,15 @@ def test_epoch_batches_see_every_sample_once_on_equal_step_counts(n, batch, worl
     assert T.epoch_batches(n, batch, world, 0, seed=1, epoch=2) == ranks[0]  # every rank can recompute it
 
 
-def test_a_run_refuses_another_config(tiny_data, tmp_path):
-    T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1")), tiny_data, out=tmp_path, progress=False)
+def test_a_run_refuses_another_config_but_not_another_device(tiny_data, tmp_path):
+    one_epoch = TINY_CONFIG.replace("epochs = 2", "epochs = 1")
+    first = T.train(T.parse_config(one_epoch), tiny_data, out=tmp_path, progress=False)
+    # A run trained on one device is the same run on another (a GPU run evaluated or resumed on a CPU).
+    elsewhere = T.parse_config(one_epoch + '[run]\ndevice = "cuda"\n')
+    assert T.train(elsewhere, tiny_data, out=tmp_path, progress=False, device="cpu").log == first.log
+    assert T.train(T.parse_config(one_epoch), tiny_data, out=tmp_path, progress=False, device="cpu").log == first.log
+    assert T.read_json(tmp_path / "run.json")["devices"] == ["cpu"]
+    assert (tmp_path / "config.toml").read_text() == one_epoch  # the run's first config, not the resumed one's
     with pytest.raises(T.InputError, match="different config"):
         T.train(T.parse_config(TINY_CONFIG), tiny_data, out=tmp_path, progress=False)
 

@@ -74,7 +74,9 @@ def ablate(config: str | os.PathLike, data: str | os.PathLike, split: str = "see
            out: str | os.PathLike | None = None, samples: int = 20_000, progress: bool = True) -> dict:
     """Train and evaluate every (variant, seed); returns the ablation summary (also written, see module docstring).
 
-    samples: surface points per mesh for the distance metrics (evaluate's `samples`).
+    samples: surface points per mesh for the distance metrics (evaluate's `samples`); device:
+    where runs train and are evaluated (overrides [run] device; not part of a run's config, so
+    runs trained on a GPU are evaluated, or resumed, on a CPU and the reverse).
     """
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
@@ -82,8 +84,6 @@ def ablate(config: str | os.PathLike, data: str | os.PathLike, split: str = "see
     text = read_text(config, "trainer config")
     parse_config(text, str(config))  # errors name the file before anything trains
     base = tomllib.loads(text)
-    if device is not None:
-        base.setdefault("run", {})["device"] = device
     data = Path(data)
     first_view = read_index(data)["views"][0]["name"]
     folder = Path(out) if out is not None else (
@@ -95,12 +95,12 @@ def ablate(config: str | os.PathLike, data: str | os.PathLike, split: str = "see
             table = variant_table(base, variant, seed, first_view, epochs)
             run = folder / f"{variant}-seed-{seed}"
             parsed = parse_config(tomli_w.dumps(table), str(run / "config.toml"))
-            train(parsed, data, split, run, progress=progress)
+            train(parsed, data, split, run, progress=progress, device=device)
             summary_file = run / f"eval-{split}" / "summary.json"
             if not summary_file.exists():
                 # The baselines see no images and every run has the same training ids: score them once.
-                evaluate(run, data, split, renders=0, device=parsed.run.device, samples=samples, progress=progress,
-                         baselines=not baselines)
+                evaluate(run, data, split, renders=0, device=device or parsed.run.device, samples=samples,
+                         progress=progress, baselines=not baselines)
             summary = read_json(summary_file)
             kind = next(m for m in summary["all"] if m not in BASELINES)
             baselines = baselines or {m: _means(summary, m) for m in BASELINES if m in summary["all"]}

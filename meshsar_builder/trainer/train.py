@@ -3,7 +3,7 @@
 The config (manifests/train/*.toml) is described in trainer.config.
 
 A run folder holds config.toml (the config as given), run.json (data, split,
-dataset identity, the validation ids), log.csv (one row per epoch: every loss
+dataset identity, the validation ids, the devices it trained on), log.csv (one row per epoch: every loss
 term, also per stage, and the validation metrics of the epochs that had them),
 checkpoint.pt (the last epoch) and best.pt (the best validation Dice so far),
 both tensors and plain data only: they load with torch.load(weights_only=True).
@@ -42,7 +42,7 @@ from meshsar_builder.dataset.readers import MeshSARDataset, collate_meshes, spli
 from meshsar_builder.dataset.shards import read_index
 from meshsar_builder.dataset.splits import make_split
 from meshsar_builder.pipeline.errors import InputError
-from meshsar_builder.pipeline.io import write_bytes, write_json
+from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
 from meshsar_builder.pipeline.seeding import item_rng, seed_sequence
 from meshsar_builder.radar.params import RadarParams
 from meshsar_builder.trainer import losses as L
@@ -298,6 +298,14 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     return torch.load(path, map_location=device, weights_only=True)
 
 
+def same_run(stored_text: str, config: TrainConfig) -> bool:
+    """Whether a checkpoint's config (its TOML text) describes the same run as `config`: equal in every
+    value but [run] device, since where a run trains is not part of what it is (it resumes elsewhere)."""
+    stored = parse_config(stored_text)
+    return dataclasses.replace(stored, run=dataclasses.replace(stored.run, device=config.run.device), text="") == \
+        dataclasses.replace(config, text="")
+
+
 def build_model(config: TrainConfig, info: dict) -> SAR2Mesh | ImplicitSAR:
     """The model a checkpoint's `info` describes (frames, fov_mm, channels, template_radius_mm), of [model] kind."""
     if config.model.kind == "implicit":
@@ -428,7 +436,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels))
     train_set, val_set = Subset(every, train_ids), Subset(every, val_ids)
     state = load_checkpoint(run / CHECKPOINT, device) if (run / CHECKPOINT).exists() else None
-    if state is not None and state["config_text"] != config.text:
+    if state is not None and not same_run(state["config_text"], config):
         raise InputError(f"{run}: holds a run of a different config; give another --out or remove it")
     info = state["info"] if state is not None else {
         "view_names": geometry.view_names, "frames": geometry.frames.tolist(), "fov_mm": geometry.fov_mm,
@@ -451,9 +459,13 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     columns = log_columns(config)
     board = tensorboard_writer(run) if rank == 0 else None
     if rank == 0:
-        write_bytes(run / "config.toml", config.text.encode("utf-8"))
-        write_json(run / "run.json", {**info, "config": config.as_dict(), "world_size": world, "device": str(device),
-                                      "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        # config.toml and the config in run.json are the run's first; a resumed run adds its device.
+        first = read_json(run / "run.json") if state is not None and (run / "run.json").exists() else {}
+        if not first:
+            write_bytes(run / "config.toml", config.text.encode("utf-8"))
+        name = f"{device} ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else "cpu"
+        write_json(run / "run.json", {**info, "config": first.get("config", config.as_dict()), "world_size": world,
+                                      "devices": list(dict.fromkeys([*first.get("devices", []), name])),
                                       "train_ids": train_ids, "val_ids": val_ids})
     # Encoder scales no stage samples leave parameters without gradients, which DDP must be told.
     unused = set(range(len(config.model.encoder_channels))) - {s for st in config.model.stage_scales for s in st}
