@@ -1,4 +1,5 @@
-"""`meshsar bench pipeline --recipe`: one from-scratch build, where its time goes, as plain JSON."""
+"""`meshsar bench pipeline --recipe`: one from-scratch build, where its time goes, as plain JSON; the
+trainer bench's step timing."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import json
 
 import pytest
 
+from meshsar_builder.bench import trainer as BT
 from meshsar_builder.bench.suite import bench_recipe
 from meshsar_builder.cli import main
 from meshsar_builder.pipeline.io import read_json
@@ -41,3 +43,30 @@ def test_recipe_bench_accounts_for_the_build(tmp_path, capsys):
 def test_recipe_goes_with_the_pipeline_part(capsys):
     assert main(["bench", "radar", "--recipe", str(MANIFESTS / "smoke.toml")]) == 2
     assert "--recipe goes with the pipeline part" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("amp", [False, True])
+def test_trainer_bench_times_a_training_step(amp, monkeypatch):
+    torch = pytest.importorskip("torch")
+    from meshsar_builder.radar.imaging import ImageParams
+    from meshsar_builder.radar.params import RadarParams, index_metadata
+    from meshsar_builder.trainer.config import parse_config
+
+    radar = RadarParams(aperture=(8, 8), step_mm=10.0, n_samples=8, echo_decimation=(2, 2, 2))
+    geometry = BT.DatasetGeometry.from_index(index_metadata(radar, ImageParams(size=32)))
+    batch = BT.synthetic_batch(2, geometry, radar)
+    batch["sar"] = batch["sar"][..., :32, :32]
+    config = parse_config(
+        'name = "tiny"\n[data]\nbatch_size = 2\n[model]\nencoder_channels = [4, 8]\nhidden = 8\nblocks = 1\n'
+        'stage_scales = [[1], [0]]\ntemplate_level = 1\n[radar_loss]\nantennas = 2\n')
+    monkeypatch.setattr(BT, "REPEATS", 1)
+    for radar_on in (False, True):  # on a CPU amp is bfloat16 autocast, as train() runs it
+        assert 0 < BT.step_ms(config, radar_on, geometry, batch, torch.device("cpu"), amp) < 60_000
+
+
+def test_trainer_bench_on_cuda_needs_cuda(tmp_path, capsys):
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA device is present")
+    assert main(["bench", "trainer", "--device", "cuda", "--out", str(tmp_path)]) != 0
+    assert "CUDA is not available" in capsys.readouterr().err

@@ -24,6 +24,7 @@ from meshsar_builder.pipeline.io import write_json
 from meshsar_builder.radar.differentiable import echo_torch
 from meshsar_builder.radar.imaging import ImageParams
 from meshsar_builder.radar.params import RadarParams, index_metadata
+from meshsar_builder.trainer.config import TrainConfig
 from meshsar_builder.trainer.train import (DatasetGeometry, autocast_factory, build_model, load_config,
                                            sample_generators, step_terms)
 
@@ -44,11 +45,10 @@ def synthetic_batch(batch_size: int, geometry: DatasetGeometry, radar: RadarPara
             "sar": torch.rand(batch_size, len(geometry.view_names), 2, 128, 128, generator=torch.Generator().manual_seed(0))}
 
 
-def step_ms(config_name: str, radar_on: bool, geometry: DatasetGeometry, batch: dict,
+def step_ms(config: TrainConfig, radar_on: bool, geometry: DatasetGeometry, batch: dict,
             device: torch.device = torch.device("cpu"), amp: bool = False) -> float:
-    """Minimum milliseconds of one training step of a shipped config's model and losses, as train() runs it
+    """Minimum milliseconds of one training step of a config's model and losses, as train() runs it
     (autocast over the forward when amp, the gradient scaler on CUDA)."""
-    config = load_config(CONFIGS / f"{config_name}.toml")
     torch.manual_seed(0)
     model = build_model(config, {"frames": geometry.frames, "fov_mm": geometry.fov_mm,
                                  "channels": list(config.data.channels), "template_radius_mm": 50.0}).to(device)
@@ -69,7 +69,7 @@ def step_ms(config_name: str, radar_on: bool, geometry: DatasetGeometry, batch: 
         scaler.update()
         synchronize(device)
         if not torch.isfinite(terms["total"]):
-            raise FloatingPointError(f"{config_name}: non-finite loss in a benchmark step (amp={amp})")
+            raise FloatingPointError(f"{config.name}: non-finite loss in a benchmark step (amp={amp})")
         if repeat:  # the first step warms allocators and kernels
             best = min(best, time.perf_counter() - start)
     return 1000 * best
@@ -98,8 +98,8 @@ def run(out_dir: str | Path, device: str = "cpu") -> dict:
         result[name] = {"batch_size": config.data.batch_size}
         for precision, amp in precisions.items():
             entry = result[name] if precision == "fp32" else result[name].setdefault(precision, {})
-            entry["ms_per_step"] = step_ms(name, False, geometry, batch, device, amp)
-            entry["ms_per_step_with_radar"] = step_ms(name, True, geometry, batch, device, amp)
+            entry["ms_per_step"] = step_ms(config, False, geometry, batch, device, amp)
+            entry["ms_per_step_with_radar"] = step_ms(config, True, geometry, batch, device, amp)
             entry["steps_per_second"] = 1000 / entry["ms_per_step"]
             entry["steps_per_second_with_radar"] = 1000 / entry["ms_per_step_with_radar"]
             entry["ms_per_sample"] = entry["ms_per_step"] / config.data.batch_size
