@@ -25,8 +25,14 @@ from meshsar_builder.radar.differentiable import echo_torch
 from meshsar_builder.radar.imaging import ImageParams
 from meshsar_builder.radar.params import RadarParams, index_metadata
 from meshsar_builder.trainer.config import TrainConfig
-from meshsar_builder.trainer.train import (DatasetGeometry, autocast_factory, build_model, load_config,
-                                           sample_generators, step_terms)
+from meshsar_builder.trainer.train import (
+    DatasetGeometry,
+    autocast_factory,
+    build_model,
+    load_config,
+    sample_generators,
+    step_terms,
+)
 
 CONFIGS = Path(__file__).resolve().parents[2] / "manifests" / "train"
 REPEATS = 3
@@ -46,9 +52,10 @@ def synthetic_batch(batch_size: int, geometry: DatasetGeometry, radar: RadarPara
 
 
 def step_ms(config: TrainConfig, radar_on: bool, geometry: DatasetGeometry, batch: dict,
-            device: torch.device = torch.device("cpu"), amp: bool = False) -> float:
+            device: torch.device | None = None, amp: bool = False) -> float:
     """Minimum milliseconds of one training step of a config's model and losses, as train() runs it
-    (autocast over the forward when amp, the gradient scaler on CUDA)."""
+    (autocast over the forward when amp, the gradient scaler on CUDA); device: the CPU unless given."""
+    device = device or torch.device("cpu")
     torch.manual_seed(0)
     model = build_model(config, {"frames": geometry.frames, "fov_mm": geometry.fov_mm,
                                  "channels": list(config.data.channels), "template_radius_mm": 50.0}).to(device)
