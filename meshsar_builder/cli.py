@@ -86,7 +86,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.evaluate import evaluate
 
     evaluate(args.run, args.data, args.split, renders=args.renders, device=args.device, checkpoint=args.checkpoint,
-             compare=tuple(args.compare))
+             compare=tuple(args.compare), samples=args.samples)
     print((Path(args.run) / f"eval-{args.split}" / "summary.md").read_text())
     return 0
 
@@ -158,6 +158,8 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--data", required=True, help="built dataset folder")
     e.add_argument("--split", default="seed-0")
     e.add_argument("--renders", type=int, help="samples drawn in renders.png (default all)")
+    e.add_argument("--samples", type=int, default=20_000,
+                   help="surface points per mesh and direction for ASSD / HD / HD95 (default 20000)")
     e.add_argument("--with", dest="compare", metavar="RUN", action="append", default=[],
                    help="another run evaluated beside it in the same table, e.g. an implicit baseline (repeatable)")
     add_run_options(e)
