@@ -174,25 +174,27 @@ class _Operator:
 
 
 def _pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float, max_iterations: int) -> np.ndarray:
-    """Preconditioned conjugate gradients for a symmetric positive definite system, columns at once."""
+    """Preconditioned conjugate gradients for a symmetric positive definite system, columns at once.
+
+    The residual is tested before each preconditioning, so no solve is spent once it is small
+    (a warm start from the previous iteration is often there after one step).
+    """
     x = start.copy()
     residual = rhs - matrix @ x
-    z = precondition(residual)
-    direction = z.copy()
-    rz = np.sum(residual * z, axis=0)
     goal = rtol * np.linalg.norm(rhs, axis=0)
+    direction, rz = np.zeros_like(x), np.zeros(x.shape[1])
     for _ in range(max_iterations):
         if np.all(np.linalg.norm(residual, axis=0) <= goal):
             break
+        z = precondition(residual)
+        rz_new = np.sum(residual * z, axis=0)
+        direction = z + np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0) * direction
+        rz = rz_new
         k_dir = matrix @ direction
         curvature = np.sum(direction * k_dir, axis=0)
         step = np.divide(rz, curvature, out=np.zeros_like(rz), where=curvature > 0)
         x += step * direction
         residual -= step * k_dir
-        z = precondition(residual)
-        rz_new = np.sum(residual * z, axis=0)
-        direction = z + np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0) * direction
-        rz = rz_new
     return x
 
 
