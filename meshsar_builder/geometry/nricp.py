@@ -288,7 +288,7 @@ class _AmbergSystem:
         self.block_index = (np.arange(n + 1), np.arange(n))
 
     def stiffness(self, vertex_weights: np.ndarray) -> sp.csr_matrix:
-        """sum_i s_i |Q_i G X_ring(i)|^2 (s_i: vertex_weights) -> its matrix (4n, 4n)."""
+        """sum_i s_i |Q_i [G X_j]_(j in ring i)|^2 (s_i: vertex_weights) -> its matrix (4n, 4n)."""
         rows, cols, values, owner = self.rings
         second = sp.csr_matrix((vertex_weights[owner] * values, (rows, cols)), shape=(self.n, self.n))
         return sp.kron(second, self.g2, format="csr")
