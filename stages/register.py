@@ -24,7 +24,7 @@ template movement, smoothing, fits accepted, their distances, label agreement an
 A fit outside the thresholds (surface distance, folds, and in the last round per-structure
 label agreement) is a named failure, not a silent bad shape. Version 3: groupwise
 template; version 4: label agreement by face strip (landmarks.label_agreement), judged in
-the last round only.
+the last round only; version 5: second-order NRICP stiffness and its schedule (nricp.py).
 """
 
 from __future__ import annotations
@@ -215,4 +215,4 @@ def finish(ctx: Context, results: Results) -> None:
                                            "max_rounds": ctx.recipe.registration.groupwise_rounds})
 
 
-STAGE = Stage(name=NAME, version=4, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=5, plan=plan, run=run, finish=finish, again=again)

@@ -239,6 +239,26 @@ def test_fold_guard_keeps_an_overly_soft_schedule_fold_free(vessel_shapes):
     assert report["nricp"]["steps"] == 3
 
 
+def test_stiffness_leaves_transforms_varying_linearly_with_position_free():
+    """The second-order stiffness (nricp.py) costs nothing for affine transforms that vary
+    linearly with position, a twist among them, on a curved surface too, and does cost
+    for a smooth transform field that varies quadratically."""
+    from meshsar_builder.geometry.nricp import _AmbergSystem
+
+    sphere = unit_sphere()
+    verts = blob(sphere.vertices) / 80.0  # curved everywhere, about unit size
+    system = _AmbergSystem(verts, sphere.faces, gamma=1.0)
+    stiffness = system.stiffness(1.0 / system.spacing**4)
+    coefficients = np.random.default_rng(0).normal(size=(4, 4, 3))
+    linear = np.einsum("ij,jkl->ikl", np.c_[np.ones(len(verts)), verts], coefficients).reshape(-1, 3)
+    quadratic = (np.sum(verts**2, axis=1)[:, None, None] * coefficients[0]).reshape(-1, 3)
+
+    def energy(x):
+        return float(np.sum(x * (stiffness @ x)))
+
+    assert abs(energy(linear)) < 1e-6 * energy(quadratic)  # rounding only
+
+
 # ---------------------------------------------------------------------------------------------
 # Labels: landmarks, agreement, acceptance, and known warps recovered vertex by vertex
 

@@ -38,8 +38,10 @@ class RegistrationParams:
     max_mean_mm, max_p95_mm: acceptance thresholds of the two-sided surface distance.
     similarity: pre-align with scale (similarity) rather than rigid only.
     icp_points: surface points of the template used by the pre-alignment ICP.
-    stiffness: NRICP stiffness per step (Amberg's alpha, with the template scaled to unit
-        bounding-box diagonal), decreasing.
+    stiffness: NRICP stiffness per step (alpha of the second-order stiffness in nricp.py,
+        with the template scaled to unit bounding-box diagonal), decreasing. It ends softer
+        than Amberg's first-order schedule (0.05 to 0.002): a second difference penalises
+        detail a few edges across far more than a first difference does.
     normal_weight: per step, exponent of the normal-agreement weight (cosine of the angle
         between the normals) of each match (0 switches it off); same length as stiffness.
     step_iterations: most iterations per stiffness step (fewer once the fit moves less
@@ -51,9 +53,9 @@ class RegistrationParams:
     reverse_weight: weight of the subject-to-template matches against the template-to-
         subject ones (0: one-sided, as in the paper).
     converge_mm: a step ends when the vertices moved less than this on average in an iteration.
-    fold_retries: how often a stiffness step is repeated with stiffer edges around faces
-        that turned over or intersect before the fit stops at the last fold-free step.
-    fold_stiffening: factor on the stiffness of those edges per repeat.
+    fold_retries: how often a stiffness step is repeated, stiffer at the vertices around faces
+        that turned over or intersect, before the fit stops at the last fold-free step.
+    fold_stiffening: factor on the stiffness of those vertices per repeat.
     distance_samples: area-weighted surface samples per side for the fit report.
     landmark_weight: weight of the label landmarks (see landmarks.py) in the first stiffness
         step, as a multiple of the data term's total weight shared among the landmarks; it
@@ -80,7 +82,7 @@ class RegistrationParams:
     max_p95_mm: float = 1.5
     similarity: bool = True
     icp_points: int = 3000
-    stiffness: tuple[float, ...] = (0.05, 0.02, 0.01, 0.005, 0.002)
+    stiffness: tuple[float, ...] = (0.05, 0.02, 0.005, 0.001, 0.0002)
     normal_weight: tuple[float, ...] = (0.5, 0.5, 0.5, 0.0, 0.0)
     step_iterations: int = 10
     match_distance_mm: float = 10.0
@@ -311,7 +313,7 @@ def register(
         landmark_error_mm: mean distance between fitted and subject landmarks;
       prealign: the (4, 4) pre-alignment as nested lists, prealign_scale: its scale;
       nricp: steps_kept (stiffness steps in the fit: fewer than `steps` when the fold guard
-        stopped early), steps, fold_repeats, stiffened_edges.
+        stopped early), steps, fold_repeats, stiffened_vertices.
     With labels, matches pair only points of one structure and label landmarks steer the
     pre-alignment and the coarse steps (see prealign and nricp.nricp).
     A subject that is not closed genus 0 raises MeshError. Judge the fit with accept().
