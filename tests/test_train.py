@@ -218,7 +218,7 @@ def test_a_run_refuses_another_config_but_not_another_device(tiny_data, tmp_path
     elsewhere = T.parse_config(one_epoch + '[run]\ndevice = "cuda"\n')
     assert T.train(elsewhere, tiny_data, out=tmp_path, progress=False, device="cpu").log == first.log
     assert T.train(T.parse_config(one_epoch), tiny_data, out=tmp_path, progress=False, device="cpu").log == first.log
-    assert T.read_json(tmp_path / "run.json")["devices"] == ["cpu"]
+    assert T.read_json(tmp_path / "run.json")["devices"] == ["cpu"]  # the resumes trained no epoch: not added
     assert (tmp_path / "config.toml").read_text() == one_epoch  # the run's first config, not the resumed one's
     with pytest.raises(T.InputError, match="different config"):
         T.train(T.parse_config(TINY_CONFIG), tiny_data, out=tmp_path, progress=False)

@@ -459,13 +459,15 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     columns = log_columns(config)
     board = tensorboard_writer(run) if rank == 0 else None
     if rank == 0:
-        # config.toml and the config in run.json are the run's first; a resumed run adds its device.
+        # config.toml and the config in run.json are the run's first; a resume that trains adds its device.
         first = read_json(run / "run.json") if state is not None and (run / "run.json").exists() else {}
         if not first:
             write_bytes(run / "config.toml", config.text.encode("utf-8"))
-        name = f"{device} ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else "cpu"
+        devices = first.get("devices", [])
+        if start < config.optim.epochs:
+            devices = [*devices, f"{device} ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else "cpu"]
         write_json(run / "run.json", {**info, "config": first.get("config", config.as_dict()), "world_size": world,
-                                      "devices": list(dict.fromkeys([*first.get("devices", []), name])),
+                                      "devices": list(dict.fromkeys(devices)),
                                       "train_ids": train_ids, "val_ids": val_ids})
     # Encoder scales no stage samples leave parameters without gradients, which DDP must be told.
     unused = set(range(len(config.model.encoder_channels))) - {s for st in config.model.stage_scales for s in st}
