@@ -242,21 +242,27 @@ def test_fold_guard_keeps_an_overly_soft_schedule_fold_free(vessel_shapes):
 def test_stiffness_leaves_transforms_varying_linearly_with_position_free():
     """The second-order stiffness (nricp.py) costs nothing for affine transforms that vary
     linearly with position, a twist among them, on a curved surface too, and does cost
-    for a smooth transform field that varies quadratically."""
+    for a smooth transform field that varies quadratically. The fold guard's first-order
+    edge term, where it is switched on, makes the linear field cost too (and leaves a
+    constant transform free)."""
     from meshsar_builder.geometry.nricp import _AmbergSystem
 
     sphere = unit_sphere()
     verts = blob(sphere.vertices) / 80.0  # curved everywhere, about unit size
     system = _AmbergSystem(verts, sphere.faces, gamma=1.0)
-    stiffness = system.stiffness(1.0 / system.spacing**4)
+    no_edges = np.zeros(len(system.edges))
+    stiffness = system.stiffness(1.0 / system.spacing**4, no_edges)
     coefficients = np.random.default_rng(0).normal(size=(4, 4, 3))
     linear = np.einsum("ij,jkl->ikl", np.c_[np.ones(len(verts)), verts], coefficients).reshape(-1, 3)
     quadratic = (np.sum(verts**2, axis=1)[:, None, None] * coefficients[0]).reshape(-1, 3)
+    constant = np.tile(coefficients[0], (len(verts), 1))
 
-    def energy(x):
-        return float(np.sum(x * (stiffness @ x)))
+    def energy(x, matrix=stiffness):
+        return float(np.sum(x * (matrix @ x)))
 
     assert abs(energy(linear)) < 1e-6 * energy(quadratic)  # rounding only
+    guarded = system.stiffness(0 * system.spacing, system.edge_base)
+    assert energy(linear, guarded) > 1e3 * abs(energy(constant, guarded))
 
 
 # ---------------------------------------------------------------------------------------------

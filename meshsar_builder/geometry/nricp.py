@@ -33,8 +33,10 @@ Two further additions over the paper, both for thin vessels joined to chambers:
   vessel shorter than the subject's is drawn to the vessel's end, not only the reverse;
 - a fold guard: after each stiffness step, faces that turned over (against the pre-aligned
   template) or intersect another face have the stiffness s_i of the vertices around them
-  raised, and the step is repeated; if that does not clear them, the fit stops at the last
-  fold-free step.
+  raised, and Amberg's first-order term switched on (and raised) on the edges among them,
+  and the step is repeated; if that does not clear them, the fit stops at the last
+  fold-free step. The first-order term is needed there: the second-order one leaves a
+  linearly varying transform free, and such a field can turn faces over.
 Speed: the system changes only in its 4 x 4 diagonal data blocks between iterations of one
 step, so it is factorised once per step (SuperLU, the vertices in minimum degree order; again
 after a fold-guard repeat changes the stiffness) and that factorisation preconditions
@@ -276,6 +278,16 @@ class _AmbergSystem:
         self.spacing = np.bincount(edges.ravel(), np.repeat(lengths, 2), minlength=n) / np.bincount(
             edges.ravel(), minlength=n)
         self.rings = _ring_residuals(verts, edges, self.spacing)
+        # First differences along edges (Amberg's own term), weighted only where the fold guard
+        # stiffens: the second-order term leaves every linearly varying transform free, a folding
+        # one too, so holding a folded region needs the transforms there to agree.
+        self.edge_base = 1.0 / np.maximum(lengths, 1e-12) ** 2
+        count = len(edges)
+        self.incidence = sp.csr_matrix(
+            (np.r_[np.ones(count), -np.ones(count)], (np.r_[np.arange(count), np.arange(count)], edges.T.ravel())),
+            shape=(count, n),
+        )
+        self.edges = edges
         # The factorisation's order: SuperLU's minimum degree order of the vertices (of a
         # diagonally dominant matrix with the stiffness's pattern: only the order is used),
         # each vertex's 4 unknowns kept together; it fills in a quarter less than ordering
@@ -287,11 +299,13 @@ class _AmbergSystem:
         self.g2 = sp.diags([1.0, 1.0, 1.0, gamma**2])
         self.block_index = (np.arange(n + 1), np.arange(n))
 
-    def stiffness(self, vertex_weights: np.ndarray) -> sp.csr_matrix:
-        """sum_i s_i |Q_i [G X_j]_(j in ring i)|^2 (s_i: vertex_weights) -> its matrix (4n, 4n)."""
+    def stiffness(self, vertex_weights: np.ndarray, edge_weights: np.ndarray) -> sp.csr_matrix:
+        """sum_i s_i |Q_i [G X_j]_(j in ring i)|^2 + sum_(i,j) in edges e_ij |G (X_i - X_j)|^2
+        (s_i: vertex_weights, e_ij: edge_weights) -> its matrix (4n, 4n)."""
         rows, cols, values, owner = self.rings
         second = sp.csr_matrix((vertex_weights[owner] * values, (rows, cols)), shape=(self.n, self.n))
-        return sp.kron(second, self.g2, format="csr")
+        first = self.incidence.T @ sp.diags(edge_weights) @ self.incidence
+        return sp.kron(second + first, self.g2, format="csr")
 
     def data(self, weights: np.ndarray, targets: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
         """sum_i w_i |[v_i 1] X_i - u_i|^2 -> its matrix (4n, 4n) and right-hand side (4n, 3)."""
@@ -408,6 +422,7 @@ def nricp(
     # second derivatives of the transforms, so the stiffness does not depend on the resolution.
     base_weights = 1.0 / system.spacing**4
     vertex_weights = base_weights.copy()
+    edge_weights = np.zeros(len(system.edges))
     x = system.identity()
     if start is not None:
         # Translations that put the fit at the start; the stiffness still measures departures
@@ -421,7 +436,7 @@ def nricp(
         x_step = x
         beta = beta0 * alpha / params.stiffness[0] if rows is not None else 0.0
         for attempt in range(params.fold_retries + 1):
-            stiffness = alpha**2 * system.stiffness(vertex_weights)
+            stiffness = alpha**2 * system.stiffness(vertex_weights, edge_weights)
             fit = system.apply(x_step)
             factor = None
             for _ in range(params.step_iterations):
@@ -447,6 +462,8 @@ def nricp(
             repeats += 1
             region = _grow(faces, np.bincount(faces[bad].ravel(), minlength=system.n).astype(bool), 2)
             vertex_weights[region] *= params.fold_stiffening
+            inside = region[system.edges].all(axis=1)
+            edge_weights[inside] = params.fold_stiffening * np.maximum(edge_weights[inside], system.edge_base[inside])
         if bad.any():
             break  # keep the last fold-free step
     summary = {
