@@ -215,4 +215,5 @@ def finish(ctx: Context, results: Results) -> None:
                                            "max_rounds": ctx.recipe.registration.groupwise_rounds})
 
 
-STAGE = Stage(name=NAME, version=5, plan=plan, run=run, finish=finish, again=again)
+# Version 6: the fold guard adds the first-order term on folded regions (v5: the second-order stiffness).
+STAGE = Stage(name=NAME, version=6, plan=plan, run=run, finish=finish, again=again)
