@@ -70,8 +70,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         return 1 if result["failures"] else 0
     parts = list(PARTS) if args.part == "all" else [args.part]
     for part in run(parts, Path(args.out), args.device):
-        name = f"{part}-{args.device}" if part == "trainer" and args.device != "cpu" else part
-        print(f"{part}: {Path(args.out) / (name + '.json')}")
+        if part == "trainer":
+            from meshsar_builder.bench.trainer import result_name
+
+            print(f"{part}: {Path(args.out) / result_name(args.device)}")
+        else:
+            print(f"{part}: {Path(args.out) / (part + '.json')}")
     return 0
 
 

@@ -73,6 +73,9 @@ def test_a_rerun_resumes_without_training(ablation, monkeypatch):
     for variant in VARIANTS:  # the finished runs' logs were not extended
         log = (data / "ablations" / "tiny-seed-0-e2" / f"{variant}-seed-0" / "log.csv").read_text().splitlines()
         assert len(log) == 1 + 2
+    # Where runs train is not part of them: --device cpu finds the same finished runs.
+    assert ablate(config, data, seeds=(0, 1), epochs=2, samples=2000, progress=False,
+                  device="cpu")["variants"] == result["variants"]
 
 
 def test_unknown_variant_is_refused_before_training(ablation, tmp_path):

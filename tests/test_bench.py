@@ -70,3 +70,17 @@ def test_trainer_bench_on_cuda_needs_cuda(tmp_path, capsys):
         pytest.skip("a CUDA device is present")
     assert main(["bench", "trainer", "--device", "cuda", "--out", str(tmp_path)]) != 0
     assert "CUDA is not available" in capsys.readouterr().err
+
+
+def test_cli_passes_train_device_and_evaluate_samples(tmp_path, monkeypatch, capsys):
+    import meshsar_builder.trainer.evaluate as E
+    import meshsar_builder.trainer.train as T
+
+    seen = {}
+    monkeypatch.setattr(T, "train", lambda *a, **k: seen.update(train=k) or T.TrainResult(tmp_path, None, []))
+    monkeypatch.setattr(E, "evaluate", lambda *a, **k: seen.update(evaluate=k))
+    (tmp_path / "eval-seed-0").mkdir()
+    (tmp_path / "eval-seed-0" / "summary.md").write_text("table")
+    assert main(["train", "c.toml", "--data", "d", "--device", "cpu"]) == 0
+    assert main(["evaluate", str(tmp_path), "--data", "d", "--samples", "123"]) == 0
+    assert seen["train"]["device"] == "cpu" and seen["evaluate"]["samples"] == 123

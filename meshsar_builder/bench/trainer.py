@@ -88,6 +88,11 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
+def result_name(device: str) -> str:
+    """The JSON file a run on `device` writes: trainer.json on the CPU, trainer-cuda.json on a GPU."""
+    return "trainer.json" if torch.device(device).type == "cpu" else "trainer-cuda.json"
+
+
 def run(out_dir: str | Path, device: str = "cpu") -> dict:
     """Time the default and paper configs on `device`, write out_dir/trainer.json (trainer-cuda.json for a GPU),
     return its contents. On CUDA each is timed in fp32 and with mixed precision (amp)."""
@@ -116,5 +121,5 @@ def run(out_dir: str | Path, device: str = "cpu") -> dict:
             result[name]["amp_speedup_with_radar"] = (result[name]["ms_per_step_with_radar"]
                                                       / result[name]["amp"]["ms_per_step_with_radar"])
     result["paper_over_default_per_sample"] = result["paper"]["ms_per_sample"] / result["default"]["ms_per_sample"]
-    write_json(Path(out_dir) / ("trainer.json" if device.type == "cpu" else "trainer-cuda.json"), result)
+    write_json(Path(out_dir) / result_name(str(device)), result)
     return result

@@ -55,7 +55,8 @@ class RegistrationParams:
     converge_mm: a step ends when the vertices moved less than this on average in an iteration.
     fold_retries: how often a stiffness step is repeated, stiffer at the vertices around faces
         that turned over or intersect, before the fit stops at the last fold-free step.
-    fold_stiffening: factor on the stiffness of those vertices per repeat.
+    fold_stiffening: factor on the stiffness of those vertices per repeat, and on the first-order
+        (edge) term the guard switches on among them.
     distance_samples: area-weighted surface samples per side for the fit report.
     landmark_weight: weight of the label landmarks (see landmarks.py) in the first stiffness
         step, as a multiple of the data term's total weight shared among the landmarks; it
