@@ -1,7 +1,9 @@
 """The library's layout (DESIGN section 2): one subpackage per domain, imports in allowed directions only.
 
 Imports are read from the source (ast), not executed, so the check is cheap and sees
-imports inside functions too.
+imports inside functions too. The same imports, module by module, must form no cycle:
+imports made only for type checking (under `if TYPE_CHECKING:`) and imports inside
+functions count, since they too tie two modules together both ways.
 """
 
 from __future__ import annotations
@@ -84,8 +86,141 @@ def layout_violations(root: Path) -> list[str]:
     return problems
 
 
+def module_imports(root: Path) -> dict[str, dict[str, int]]:
+    """Module -> {library module it imports: first line}, every import counted (type-only, in functions).
+
+    `from a.b import c` is an import of module a.b.c where that is a module, else of a.b.
+    """
+    sources = {}
+    for path in sorted((root / PACKAGE).rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        is_package = parts[-1] == "__init__"
+        sources[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+    graph: dict[str, dict[str, int]] = {}
+    for module, (path, is_package) in sources.items():
+        edges = graph.setdefault(module, {})
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = module.split(".")[: len(module.split(".")) - node.level + (1 if is_package else 0)]
+                    name = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    name = node.module or ""
+                names = [f"{name}.{alias.name}" if f"{name}.{alias.name}" in sources else name for alias in node.names]
+            else:
+                continue
+            for name in names:
+                while name and name not in sources:  # a name inside a module: the module
+                    name = name.rpartition(".")[0]
+                if name and name != module:
+                    edges.setdefault(name, node.lineno)
+    return graph
+
+
+def find_cycles(graph: dict[str, dict[str, int] | set[str]]) -> list[list[str]]:
+    """One cycle [a, b, ..., a] per strongly connected group of nodes that import each other (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    groups: list[list[str]] = []
+
+    def visit(v: str) -> None:  # recursion depth is bounded by the module count
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1 or v in graph.get(v, ()):
+                groups.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    cycles = []
+    for group in sorted(groups):
+        members, start = set(group), group[0]
+        # a shortest path from start back to itself, inside the group (breadth first)
+        prev: dict[str, str] = {}
+        frontier, seen = [start], {start}
+        while frontier and start not in prev:
+            nxt = []
+            for v in frontier:
+                for w in sorted(graph.get(v, ())):
+                    if w in members and w == start and start not in prev:
+                        prev[start] = v
+                    elif w in members and w not in seen:
+                        seen.add(w)
+                        prev[w] = v
+                        nxt.append(w)
+            frontier = nxt
+        path, v = [start], prev[start]
+        while v != start:
+            path.append(v)
+            v = prev[v]
+        cycles.append([start, *reversed(path[1:]), start])
+    return cycles
+
+
+def import_cycles(root: Path) -> list[str]:
+    """Every import cycle among the library's modules, as 'a -> b (file:line) -> ... -> a'."""
+    graph = module_imports(root)
+    out = []
+    for cycle in find_cycles(graph):
+        steps = [cycle[0]]
+        for a, b in zip(cycle, cycle[1:]):
+            steps.append(f"{b} ({a.replace('.', '/')}.py:{graph[a][b]})")
+        out.append(" -> ".join(steps))
+    return out
+
+
 def test_the_library_keeps_its_import_directions():
     assert layout_violations(ROOT) == []
+
+
+def test_the_library_has_no_import_cycles():
+    assert import_cycles(ROOT) == []
+
+
+@pytest.mark.parametrize("graph, expected", [
+    ({"a": {"b"}, "b": {"c"}, "c": set()}, []),
+    ({"a": {"b"}, "b": {"a"}}, [["a", "b", "a"]]),
+    ({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}, [["a", "b", "c", "a"]]),
+    ({"a": {"a"}}, [["a", "a"]]),
+    ({"a": {"b", "c"}, "b": {"a"}, "c": {"d"}, "d": {"c"}}, [["a", "b", "a"], ["c", "d", "c"]]),
+    ({"a": {"b", "d"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}, [["a", "d", "a"]]),  # one group, its shortest cycle
+])
+def test_the_cycle_finder_on_small_graphs(graph, expected):
+    assert find_cycles(graph) == expected
+
+
+@pytest.mark.parametrize("a_imports", [
+    "from meshsar_builder.geometry.b import Params\n",
+    "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from meshsar_builder.geometry.b import Params\n",
+    "def f():\n    from .b import Params\n",
+    "from meshsar_builder.geometry import b\n",
+])
+def test_a_planted_cycle_is_named_even_through_a_type_only_or_local_import(tmp_path, a_imports):
+    root = _tree(tmp_path, {"geometry/a.py": a_imports,
+                            "geometry/b.py": "import numpy as np\nfrom meshsar_builder.geometry.a import fit\n"})
+    cycles = import_cycles(root)
+    assert len(cycles) == 1, cycles
+    assert cycles[0].startswith("meshsar_builder.geometry.a -> meshsar_builder.geometry.b (meshsar_builder/geometry/a.py:")
+    assert cycles[0].endswith("-> meshsar_builder.geometry.a (meshsar_builder/geometry/b.py:2)"), cycles
 
 
 def test_every_domain_is_a_documented_light_subpackage():

@@ -26,7 +26,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from meshsar_builder.geometry.nricp import flipped_faces
-from meshsar_builder.geometry.registration import RegistrationParams, accept, register
+from meshsar_builder.geometry.registration import accept, register
+from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import self_intersecting_faces
 from meshsar_builder.geometry.ssm import procrustes_align, rigid_fit
 from meshsar_builder.pipeline.errors import MeshError

@@ -45,8 +45,6 @@ warm-started conjugate gradients in every iteration.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
@@ -54,10 +52,8 @@ from scipy.spatial import cKDTree
 
 from meshsar_builder.geometry.landmarks import face_labels
 from meshsar_builder.geometry.meshing import closest_on_triangles
+from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import self_intersecting_faces
-
-if TYPE_CHECKING:
-    from meshsar_builder.geometry.registration import RegistrationParams
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -11,7 +11,6 @@ distance, its folds and its per-structure label agreement (accept).
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 import numpy as np
 import trimesh
@@ -25,130 +24,9 @@ from meshsar_builder.geometry.landmarks import (
 )
 from meshsar_builder.geometry.meshing import point_to_surface
 from meshsar_builder.geometry.nricp import Subject, Surface, flipped_faces, nricp
+from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import require_valid, self_intersecting_faces
 from meshsar_builder.pipeline.errors import MeshError
-
-
-@dataclass(frozen=True)
-class RegistrationParams:
-    """The recipe's [registration] section.
-
-    template: "median" (the subject of median volume) or a subject id.
-    template_vertices: vertex count the template surface is simplified to.
-    max_mean_mm, max_p95_mm: acceptance thresholds of the two-sided surface distance.
-    similarity: pre-align with scale (similarity) rather than rigid only.
-    icp_points: surface points of the template used by the pre-alignment ICP.
-    stiffness: NRICP stiffness per step (alpha of the second-order stiffness in nricp.py,
-        with the template scaled to unit bounding-box diagonal), decreasing. It ends softer
-        than Amberg's first-order schedule (0.05 to 0.002): a second difference penalises
-        detail a few edges across far more than a first difference does.
-    normal_weight: per step, exponent of the normal-agreement weight (cosine of the angle
-        between the normals) of each match (0 switches it off); same length as stiffness.
-    step_iterations: most iterations per stiffness step (fewer once the fit moves less
-        than converge_mm).
-    match_distance_mm: matches farther apart than this are ignored by the data term of
-        that iteration.
-    max_normal_deg: matches whose normals differ by more than this are ignored.
-    gamma: weight of the translation part against the linear part in the stiffness term.
-    reverse_weight: weight of the subject-to-template matches against the template-to-
-        subject ones (0: one-sided, as in the paper).
-    converge_mm: a step ends when the vertices moved less than this on average in an iteration.
-    fold_retries: how often a stiffness step is repeated, stiffer at the vertices around faces
-        that turned over or intersect, before the fit stops at the last fold-free step.
-    fold_stiffening: factor on the stiffness of those vertices per repeat, and on the first-order
-        (edge) term the guard switches on among them.
-    distance_samples: area-weighted surface samples per side for the fit report.
-    landmark_weight: weight of the label landmarks (see landmarks.py) in the first stiffness
-        step, as a multiple of the data term's total weight shared among the landmarks; it
-        decays with the stiffness (alpha / alpha_0), so the landmarks steer the coarse fit
-        and leave the fine fit to the surface (Amberg's beta schedule). 0 switches them off.
-        With 4 or more landmarks, the non-rigid fit starts from the template warped onto them
-        by a thin-plate spline (tangential shape changes such as a twist are not recovered
-        by closest-point matches, which only pull along the normal).
-    landmark_smoothing: regulariser of that spline (see landmarks.landmark_warp).
-    min_label_agreement: least fraction of each structure's template vertices that must
-        land on their own structure (see landmarks.label_agreement) for acceptance.
-    groupwise_rounds: most registrations to a groupwise template (the Procrustes mean of the
-        previous round's fits, groupwise.py) after the first one to the reference subject;
-        0 keeps the reference subject as the template.
-    groupwise_converge_mm: the rounds stop early once the template moved less than this
-        (mean vertex displacement from the previous template, after a rigid fit).
-    groupwise_smoothing: most Taubin steps on a groupwise template to clear self-
-        intersections and flipped faces of the plain mean before the round fails.
-    """
-
-    template: str = "median"
-    template_vertices: int = 6000
-    max_mean_mm: float = 0.5
-    max_p95_mm: float = 1.5
-    similarity: bool = True
-    icp_points: int = 3000
-    stiffness: tuple[float, ...] = (0.05, 0.02, 0.005, 0.001, 0.0002)
-    normal_weight: tuple[float, ...] = (0.5, 0.5, 0.5, 0.0, 0.0)
-    step_iterations: int = 10
-    match_distance_mm: float = 10.0
-    max_normal_deg: float = 60.0
-    gamma: float = 1.0
-    reverse_weight: float = 0.1
-    converge_mm: float = 0.02
-    fold_retries: int = 4
-    fold_stiffening: float = 10.0
-    distance_samples: int = 20000
-    landmark_weight: float = 0.1
-    landmark_smoothing: float = 10.0
-    min_label_agreement: float = 0.97
-    groupwise_rounds: int = 2
-    groupwise_converge_mm: float = 0.5
-    groupwise_smoothing: int = 10
-
-    def __post_init__(self) -> None:
-        if not self.template:
-            raise ValueError(f"template: must be 'median' or a subject id, got {self.template!r}")
-        if self.template_vertices < 100:
-            raise ValueError(f"template_vertices: must be >= 100, got {self.template_vertices}")
-        if not self.max_mean_mm > 0:
-            raise ValueError(f"max_mean_mm: must be > 0, got {self.max_mean_mm}")
-        if not self.max_p95_mm > 0:
-            raise ValueError(f"max_p95_mm: must be > 0, got {self.max_p95_mm}")
-        if self.icp_points < 10:
-            raise ValueError(f"icp_points: must be >= 10, got {self.icp_points}")
-        if not self.stiffness or any(not s > 0 for s in self.stiffness):
-            raise ValueError(f"stiffness: must be a non-empty list of values > 0, got {self.stiffness}")
-        if len(self.normal_weight) != len(self.stiffness) or any(w < 0 for w in self.normal_weight):
-            raise ValueError(
-                f"normal_weight: must hold {len(self.stiffness)} values >= 0 (one per stiffness step), "
-                f"got {self.normal_weight}"
-            )
-        if self.step_iterations < 1:
-            raise ValueError(f"step_iterations: must be >= 1, got {self.step_iterations}")
-        if not self.match_distance_mm > 0:
-            raise ValueError(f"match_distance_mm: must be > 0, got {self.match_distance_mm}")
-        if not 0 < self.max_normal_deg <= 180:
-            raise ValueError(f"max_normal_deg: must be in (0, 180], got {self.max_normal_deg}")
-        if not self.gamma > 0:
-            raise ValueError(f"gamma: must be > 0, got {self.gamma}")
-        if not self.reverse_weight >= 0:
-            raise ValueError(f"reverse_weight: must be >= 0, got {self.reverse_weight}")
-        if not self.converge_mm > 0:
-            raise ValueError(f"converge_mm: must be > 0, got {self.converge_mm}")
-        if self.fold_retries < 0:
-            raise ValueError(f"fold_retries: must be >= 0, got {self.fold_retries}")
-        if not self.fold_stiffening > 1:
-            raise ValueError(f"fold_stiffening: must be > 1, got {self.fold_stiffening}")
-        if not self.landmark_weight >= 0:
-            raise ValueError(f"landmark_weight: must be >= 0, got {self.landmark_weight}")
-        if not self.landmark_smoothing >= 0:
-            raise ValueError(f"landmark_smoothing: must be >= 0, got {self.landmark_smoothing}")
-        if not 0 <= self.min_label_agreement <= 1:
-            raise ValueError(f"min_label_agreement: must be in [0, 1], got {self.min_label_agreement}")
-        if self.groupwise_rounds < 0:
-            raise ValueError(f"groupwise_rounds: must be >= 0, got {self.groupwise_rounds}")
-        if not self.groupwise_converge_mm >= 0:
-            raise ValueError(f"groupwise_converge_mm: must be >= 0, got {self.groupwise_converge_mm}")
-        if self.groupwise_smoothing < 0:
-            raise ValueError(f"groupwise_smoothing: must be >= 0, got {self.groupwise_smoothing}")
-        if self.distance_samples < 100:
-            raise ValueError(f"distance_samples: must be >= 100, got {self.distance_samples}")
 
 
 def choose_template(volumes: Mapping[str, float], template: str = "median") -> str:
