@@ -124,9 +124,13 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="meshsar", description="Build the Cardiac Mesh-SAR dataset.")
+    p = argparse.ArgumentParser(
+        prog="meshsar", description="Build the Cardiac Mesh-SAR dataset and train SAR2Mesh on it.",
+        epilog="docs: README.md to start; docs/data.md (building and reading the data), docs/trainer.md "
+               "(training), docs/results.md (results beside the paper). Each command's --help names its page.")
     sub = p.add_subparsers(dest="command", required=True)
-    b = sub.add_parser("build", help="run a recipe's stages (skips what is up to date)")
+    b = sub.add_parser("build", help="run a recipe's stages (skips what is up to date)",
+                       epilog="docs: docs/data.md (stages, recipes, Dask); the radar on a GPU: docs/radar.md")
     b.add_argument("recipe", help="recipe TOML, e.g. manifests/demo.toml")
     b.add_argument("--out", help="output folder (default build/<recipe name>)")
     b.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
@@ -138,26 +142,31 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--device", metavar="DEVICE", help="where the radar stage's echo and imaging run: cpu, cuda or "
                                                       "cuda:N (sets [radar] device; default: the recipe's, cpu)")
     b.set_defaults(func=cmd_build)
-    s = sub.add_parser("splits", help="write splits/seed-S.json from the index (shards are not read)")
+    s = sub.add_parser("splits", help="write splits/seed-S.json from the index (shards are not read)",
+                       epilog="docs: docs/data.md (splits)")
     s.add_argument("out", help="built dataset folder")
     s.add_argument("--seed", type=int, required=True)
     s.add_argument("--ratios", help="e.g. train=0.8,test=0.2 (default)")
     s.set_defaults(func=cmd_splits)
-    v = sub.add_parser("verify", help="check every shard's digest and arrays, the index and the splits")
+    v = sub.add_parser("verify", help="check every shard's digest and arrays, the index and the splits",
+                       epilog="docs: docs/data.md (the data contract)")
     v.add_argument("out", help="built dataset folder")
     v.set_defaults(func=cmd_verify)
-    pv = sub.add_parser("preview", help="render a gallery of samples (meshes beside their SAR images) to card/preview.png")
+    pv = sub.add_parser("preview", help="render a gallery of samples (meshes beside their SAR images) to "
+                                         "card/preview.png", epilog="docs: docs/data.md")
     pv.add_argument("out", help="built dataset folder")
     pv.add_argument("--n", type=int, default=8, help="samples to show (default 8)")
     pv.set_defaults(func=cmd_preview)
-    t = sub.add_parser("train", help="train the reference SAR2Mesh model on a built dataset (resumes a run)")
+    t = sub.add_parser("train", help="train the reference SAR2Mesh model on a built dataset (resumes a run)",
+                       epilog="docs: docs/trainer.md")
     t.add_argument("config", help="trainer config TOML, e.g. manifests/train/default.toml")
     t.add_argument("--data", required=True, help="built dataset folder")
     t.add_argument("--split", default="seed-0")
     t.add_argument("--out", help="run folder (default DATA/runs/<config name>-<split>)")
     t.add_argument("--device", choices=["cpu", "cuda", "auto"], help="override [run] device")
     t.set_defaults(func=cmd_train)
-    e = sub.add_parser("evaluate", help="metrics, tables and renders of a trained run on a split")
+    e = sub.add_parser("evaluate", help="metrics, tables and renders of a trained run on a split",
+                       epilog="docs: docs/trainer.md (evaluation); measured results: docs/results.md")
     e.add_argument("run", help="run folder")
     e.add_argument("--data", required=True, help="built dataset folder")
     e.add_argument("--split", default="seed-0")
@@ -168,7 +177,8 @@ def parser() -> argparse.ArgumentParser:
                    help="another run evaluated beside it in the same table, e.g. an implicit baseline (repeatable)")
     add_run_options(e)
     e.set_defaults(func=cmd_evaluate)
-    pr = sub.add_parser("predict", help="meshes (PLY) and a gallery from a trained run, for a split or an images file")
+    pr = sub.add_parser("predict", help="meshes (PLY) and a gallery from a trained run, for a split or an images file",
+                        epilog="docs: docs/trainer.md (prediction)")
     pr.add_argument("run", help="run folder")
     source = pr.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", help="built dataset folder")
@@ -179,7 +189,8 @@ def parser() -> argparse.ArgumentParser:
     pr.add_argument("--gallery", type=int, help="samples drawn in gallery.png (default all)")
     add_run_options(pr)
     pr.set_defaults(func=cmd_predict)
-    ab = sub.add_parser("ablate", help="train and evaluate a config's ablation variants over seeds: mean ± std table")
+    ab = sub.add_parser("ablate", help="train and evaluate a config's ablation variants over seeds: mean ± std table",
+                        epilog="docs: docs/trainer.md (ablation)")
     ab.add_argument("config", help="trainer config TOML, e.g. manifests/train/default.toml")
     ab.add_argument("--data", required=True, help="built dataset folder")
     ab.add_argument("--split", default="seed-0")
@@ -194,7 +205,8 @@ def parser() -> argparse.ArgumentParser:
     ab.set_defaults(func=cmd_ablate)
     from meshsar_builder.bench.suite import PARTS
 
-    be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/")
+    be = sub.add_parser("bench", help="speed and memory benchmarks, JSON under build/bench/",
+                        epilog="docs: docs/benchmarks.md (measured figures and the hardware)")
     be.add_argument("part", nargs="?", default="all", choices=[*PARTS, "all"])
     be.add_argument("--out", default="build/bench")
     be.add_argument("--recipe", help="pipeline only: build this recipe from scratch and time it against the "
