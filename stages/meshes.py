@@ -32,6 +32,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
             spec = specs[li.source]
             params = {"meshing": meshing, "structures": list(spec.structures), "table": d["table"],
                       "require_affine": spec.require_affine}
+            if li.t is not None:  # one frame (T index) of a 4-D label map
+                params["t"] = li.t
             items.append(Item(li.item_id, (f"{li.item_id}.ply",), inputs=(li.path,), params=params,
                               data=(d, spec.structures, spec.use, spec.require_affine)))
     return items
@@ -42,7 +44,7 @@ def run(ctx: Context, item: Item) -> dict:
     li = LabelItem.from_json(d)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InputWarning)
-        labels, affine = read_label_map(li.path, li.table, require_affine)
+        labels, affine = read_label_map(li.path, li.table, require_affine, t=li.t)
     surf = labels_to_surface(labels, affine, list(structures), ctx.recipe.meshing, name=li.path)
     motion = {}
     if li.frame is not None and (labels == STRUCTURES["myo"]).any():

@@ -4,7 +4,9 @@ Outputs, per source `<name>`:
 - phantom: `sources/<name>/ct_train_NNNN_label.nii.gz` (whole heart) or
   `sources/<name>/patientNNN/{Info.cfg, patientNNN_frameYY_gt.nii.gz}` (biventricular),
   one item per subject, indexed back through the same loaders as real data;
-- real data: `sources/<name>.index.json`, the list of label maps found;
+- real data: `sources/<name>.index.json`, the list of label maps found: one item per 3-D map,
+  one per frame (T index) of a 4-D map, with subject, frame, phase and provenance from the
+  source's layout (acdc: Info.cfg and predicted 4-D maps; nifti: regex, frame_table, phases);
 - shape_model: `sources/<name>/<name>-smNNNNN.ply`, `samples` shapes drawn from the external
   PCA model as SSM samples are ([ssm] truncate_sigma, max_redraws; each from its own seed),
   one item per source (the model is read once).
@@ -39,15 +41,19 @@ from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 from meshsar_builder.pipeline.seeding import item_rng
 
 NAME = "sources"
+# [[sources]] keys that decide a real source's subjects and frames (sources.SourceSpec).
+FRAME_KEYS = ("regex", "frame_table", "phases", "provenance", "predicted")
 
 
 def index_source(spec: SourceSpec, root: Path, provenance: str | None = None, subject: str = "*") -> list[LabelItem]:
     """The label maps of a source folder, through the loader of its layout."""
     limit = spec.subjects or None
     if spec.kind == "nifti":
-        return index_nifti(root, spec.name, spec.labels, limit, pattern=spec.pattern)
+        return index_nifti(root, spec.name, spec.labels, limit, pattern=spec.pattern, regex=spec.regex,
+                           frame_table=spec.frame_table, phases=spec.phases, provenance=spec.provenance)
     if spec.kind == "acdc" or spec.anatomy == "biventricular":
-        return index_acdc(root, spec.name, limit, provenance=provenance, subject=subject)
+        return index_acdc(root, spec.name, limit, provenance=provenance, subject=subject,
+                          predicted=spec.predicted if spec.kind == "acdc" else "")
     return index_mmwhs(root, spec.name, limit, provenance=provenance or "annotated", subject=subject)
 
 
@@ -90,7 +96,12 @@ def plan(ctx: Context, results: Results) -> list[Item]:
             root = spec.data_path()
             params = {"kind": spec.kind, "root": str(root), "labels": spec.labels, "subjects": spec.subjects,
                       "pattern": spec.pattern, "listing": listing_digest(root)}
-            items.append(Item(spec.name, (f"{spec.name}.index.json",), params=params, data=(spec, str(root), None)))
+            # The subject / frame keys, where set (a recipe without them keeps its parameter hash).
+            params.update({k: getattr(spec, k) for k in FRAME_KEYS if getattr(spec, k)})
+            table = Path(spec.frame_table)
+            inputs = (str(table),) if spec.frame_table and table.is_absolute() else ()  # else in the listing
+            items.append(Item(spec.name, (f"{spec.name}.index.json",), inputs=inputs, params=params,
+                              data=(spec, str(root), None)))
             continue
         params = {"anatomy": spec.anatomy, "voxel_mm": spec.voxel_mm, "frames": spec.frames, "seed": ctx.recipe.seed}
         for subject in phantom_subjects(spec):
@@ -141,4 +152,5 @@ def draw_shape_samples(ctx: Context, spec: SourceSpec) -> dict:
     return {"label_items": [], "shape_samples": samples, "shape_model": provenance}
 
 
-STAGE = Stage(name=NAME, version=2, plan=plan, run=run)
+# v3: 4-D label maps (one item per T index), acdc's predicted maps, nifti's regex / frame_table.
+STAGE = Stage(name=NAME, version=3, plan=plan, run=run)

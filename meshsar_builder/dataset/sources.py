@@ -7,6 +7,7 @@ never derived from the sorted values found in a file.
 
 from __future__ import annotations
 
+import csv
 import gzip
 import os
 import re
@@ -32,6 +33,25 @@ MMWHS_TABLE: dict[int, str] = {
     205: "myo", 420: "la", 421: "la", 500: "lv", 550: "ra", 600: "rv", 820: "aorta", 850: "pa",
 }
 ACDC_TABLE: dict[int, str] = {1: "rv", 2: "myo", 3: "lv"}
+# ACDC: 4-D label maps predicted for every frame, per patient folder, where present.
+ACDC_PREDICTED = "{subject}_4d_pred.nii*"
+PHASES = ("ED", "ES")
+FRAME_GROUPS = ("subject", "frame", "phase")
+
+
+def compile_frame_regex(text: str) -> re.Pattern:
+    """A `regex` recipe value compiled; ValueError naming the key when it does not compile, lacks
+    the `subject` group or names a group other than subject, frame and phase."""
+    try:
+        rx = re.compile(text)
+    except re.error as e:
+        raise ValueError(f"regex: not a regular expression ({e}): {text!r}") from None
+    if "subject" not in rx.groupindex:
+        raise ValueError(f"regex: needs a named group (?P<subject>...), got {text!r}")
+    extra = sorted(set(rx.groupindex) - set(FRAME_GROUPS))
+    if extra:
+        raise ValueError(f"regex: named groups must be among {list(FRAME_GROUPS)}, got {extra}")
+    return rx
 
 KINDS = ("phantom", "mmwhs", "acdc", "nifti", "shape_model")
 SOURCE_STRUCTURES = {
@@ -62,6 +82,13 @@ class SourceSpec:
     vertex_labels: str = ""  # optional: one value per vertex, mapped by `labels`; else one structure for all
     samples: int = 0  # shape_model: shapes drawn
     n_modes: int = 0  # shape_model: leading modes used (0 = all in the file)
+    # Subjects and frames of real cine data (nifti; acdc: predicted; any label-map source: cohort)
+    regex: str = ""  # nifti: named groups subject (required), frame, phase, searched in each file's relative path
+    frame_table: str = ""  # nifti: CSV (file, subject[, frame, phase, provenance]), relative to `path`
+    phases: dict[str, int] = field(default_factory=dict)  # nifti: e.g. { ED = 0, ES = 9 }: frame numbers of ED / ES
+    provenance: str = ""  # nifti: annotated (default) | predicted
+    predicted: str = ""  # acdc: glob, per patient folder, of predicted label maps; default "{subject}_4d_pred.nii*"
+    cohort: str = ""  # label-map sources with the same cohort share subject names (splits group across them)
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -94,6 +121,7 @@ class SourceSpec:
             raise ValueError(f"pattern: only a nifti source takes a file-name pattern ({self.kind} has a fixed layout)")
         if self.pattern and not re.search(r"\.nii(\.gz)?\*?$", self.pattern):
             raise ValueError(f"pattern: must match NIfTI files (end in .nii, .nii.gz or .nii*), got {self.pattern!r}")
+        self._check_frames(set_)
         if self.require_affine and self.kind in ("phantom", "shape_model"):
             raise ValueError("require_affine: only a label-map source reads headers that may lack an affine")
         shape_model = self.kind == "shape_model"
@@ -141,6 +169,40 @@ class SourceSpec:
         set_("use", self.use or ("ssm" if whole or shape_model else "direct"))
         if self.use not in ("ssm", "direct"):
             raise ValueError(f"use: must be 'ssm' or 'direct', got {self.use!r}")
+
+    def _check_frames(self, set_) -> None:
+        """The subject / frame keys: each only where its kind reads it, and well-formed."""
+        only = {"regex": "nifti", "frame_table": "nifti", "phases": "nifti", "provenance": "nifti", "predicted": "acdc"}
+        for key, kind in only.items():
+            if getattr(self, key) and self.kind != kind:
+                raise ValueError(f"{key}: only a{'n' if kind[0] in 'aeiou' else ''} {kind} source takes {key}")
+        if self.regex:
+            compile_frame_regex(self.regex)
+            if self.frame_table:
+                raise ValueError("regex: give either regex or frame_table, not both (the table names every file)")
+        if self.frame_table:
+            if not self.frame_table.endswith(".csv"):
+                raise ValueError(f"frame_table: must be a .csv file, got {self.frame_table!r}")
+            if self.pattern:
+                raise ValueError("pattern: a frame_table names its files; leave pattern out")
+        bad = sorted(set(self.phases) - set(PHASES))
+        if bad:
+            raise ValueError(f"phases: keys must be among {list(PHASES)}, got {bad}")
+        if any(v < 0 for v in self.phases.values()):
+            raise ValueError(f"phases: frame numbers must be >= 0, got {self.phases}")
+        if len(set(self.phases.values())) < len(self.phases):
+            raise ValueError(f"phases: ED and ES must be different frames, got {self.phases}")
+        if self.provenance and self.provenance not in ("annotated", "predicted"):
+            raise ValueError(f"provenance: must be 'annotated' or 'predicted', got {self.provenance!r}")
+        if self.kind == "acdc":
+            set_("predicted", self.predicted or ACDC_PREDICTED)
+            if not re.search(r"\.nii(\.gz)?\*?$", self.predicted):
+                raise ValueError(f"predicted: must match NIfTI files (end in .nii, .nii.gz or .nii*), got {self.predicted!r}")
+        if self.cohort:
+            if self.kind in ("phantom", "shape_model"):
+                raise ValueError(f"cohort: only a label-map source (mmwhs, acdc, nifti) has subjects to share, not {self.kind}")
+            if not NAME_RE.match(self.cohort):
+                raise ValueError(f"cohort: letters, digits, '_' and '-' only, got {self.cohort!r}")
 
     @property
     def subset(self) -> str:
@@ -197,6 +259,7 @@ class LabelItem:
     cycle_fraction: float | None = None
     provenance: str = "annotated"  # annotated | predicted | phantom
     extra: dict = field(default_factory=dict)
+    t: int | None = None  # a 4-D label map's T index (0-based) that holds this frame; None: a 3-D map
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -208,14 +271,22 @@ class LabelItem:
         return cls(**{**d, "table": {int(k): v for k, v in d["table"].items()}})
 
 
-def item_id(source: str, subject: str, frame: int | None = None) -> str:
-    """A file-name-safe id, unique across a recipe's sources."""
+def item_id(source: str, subject: str, frame: int | None = None, phase: str = "") -> str:
+    """A file-name-safe id, unique across a recipe's sources (a frame known only by its phase:
+    `<source>-<subject>-ED`)."""
     base = re.sub(r"[^A-Za-z0-9_-]+", "_", f"{source}-{subject}")
-    return base if frame is None else f"{base}-f{frame:02d}"
+    if frame is None:
+        return f"{base}-{phase}" if phase else base
+    return f"{base}-f{frame:02d}"
 
 
-def _load_header(path: Path) -> tuple[nib.Nifti1Image, tuple[int, ...]]:
-    """The image proxy and its 3-D shape; InputError naming the file when unreadable, not 3-D or oversized."""
+# A 4-D label map holds at most this many frames (a cine cycle has a few dozen).
+MAX_FRAMES = 10000
+
+
+def _read_header(path: Path) -> tuple[nib.Nifti1Image, tuple[int, ...]]:
+    """The image proxy and its shape, 3-D (X, Y, Z) or 4-D (X, Y, Z, T) with T > 1; InputError
+    naming the file when unreadable, of another rank, or oversized (per frame, or T > MAX_FRAMES)."""
     try:
         img = nib.load(str(path))
         shape = tuple(int(s) for s in img.header.get_data_shape())
@@ -223,20 +294,47 @@ def _load_header(path: Path) -> tuple[nib.Nifti1Image, tuple[int, ...]]:
         raise InputError(f"{path}: not a readable NIfTI file ({type(e).__name__}: {e})") from e
     if len(shape) == 4 and shape[3] == 1:
         shape = shape[:3]
-    if len(shape) != 3:
-        raise InputError(f"{path}: label map must be 3-D, got shape {shape}")
-    if min(shape) < 1 or int(np.prod(shape, dtype=np.int64)) > MAX_VOXELS:
-        raise InputError(f"{path}: implausible image size {shape} (limit {MAX_VOXELS} voxels)")
+    if len(shape) not in (3, 4):
+        raise InputError(f"{path}: label map must be 3-D (or 4-D, one frame per T index), got shape {shape}")
+    if min(shape) < 1 or int(np.prod(shape[:3], dtype=np.int64)) > MAX_VOXELS or shape[3:4] > (MAX_FRAMES,):
+        raise InputError(f"{path}: implausible image size {shape} (limit {MAX_VOXELS} voxels a frame, {MAX_FRAMES} frames)")
     return img, shape
 
 
-def _load_data(path: Path, img: nib.Nifti1Image) -> tuple[nib.Nifti1Image, np.ndarray]:
-    """The image reoriented to closest canonical RAS and its voxel data; InputError when corrupt."""
+def n_frames(path: str | Path) -> int | None:
+    """T of a 4-D label map (X, Y, Z, T), from its header alone; None for a 3-D map. InputError as _read_header."""
+    shape = _read_header(Path(path))[1]
+    return shape[3] if len(shape) == 4 else None
+
+
+def _load_header(path: Path, t: int | None = None) -> tuple[nib.Nifti1Image, tuple[int, ...]]:
+    """The image proxy and the 3-D shape of the map (of its frame `t`, a T index, when 4-D);
+    InputError naming the file when unreadable, oversized, 4-D without `t`, `t` out of range,
+    or `t` given for a 3-D map."""
+    img, shape = _read_header(path)
+    if len(shape) == 4:
+        if t is None:
+            raise InputError(f"{path}: label map must be 3-D, got shape {shape} (a 4-D map is read one frame "
+                             f"per T index: index it through a source)")
+        if not 0 <= t < shape[3]:
+            raise InputError(f"{path}: frame index t = {t} out of range for a 4-D map of {shape[3]} frames "
+                             f"(T indices 0..{shape[3] - 1})")
+    elif t is not None and t != 0:
+        raise InputError(f"{path}: frame index t = {t} given, but the label map is 3-D, shape {shape}")
+    return img, shape[:3]
+
+
+def _load_data(path: Path, img: nib.Nifti1Image, t: int | None = None) -> tuple[nib.Nifti1Image, np.ndarray]:
+    """The image (its frame `t` when 4-D, same affine) reoriented to closest canonical RAS and
+    its voxel data; InputError when corrupt."""
     try:
         if path.name.endswith(".gz"):
             # Decompress the whole stream: gzip checks its CRC and length, so a truncated file
             # fails here even when the bytes the image needs happen to come before the cut.
             img = type(img).from_bytes(gzip.decompress(path.read_bytes()))
+        if len(img.shape) == 4:
+            # One T index: slicing the last axis keeps the affine (and reads only that frame).
+            img = img.slicer[:, :, :, t if t is not None else 0]
         img = nib.as_closest_canonical(img)
         return img, np.asanyarray(img.dataobj).reshape(img.shape[:3])
     except (OSError, EOFError, zlib.error, gzip.BadGzipFile, ValueError) as e:
@@ -249,7 +347,7 @@ def label_map_verdict(path: str | Path) -> str:
     values (an intensity image)."""
     path = Path(path)
     try:
-        img, _ = _load_header(path)  # refuses oversized headers before any data is read
+        img, _ = _read_header(path)  # refuses oversized headers before any data is read
         data = np.asanyarray(img.dataobj)
     except Exception:  # noqa: BLE001 (any unreadable file stays indexed: read_label_map names its problem)
         return ""
@@ -258,16 +356,20 @@ def label_map_verdict(path: str | Path) -> str:
 
 
 def read_label_map(
-    path: str | Path, table: dict[int, str], require_affine: bool = False
+    path: str | Path, table: dict[int, str], require_affine: bool = False, t: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read a NIfTI label map, reorient to the closest canonical RAS, map to canonical ids.
+
+    A 4-D map (X, Y, Z, T) is read one frame at a time: `t` is the T index (0-based) to read,
+    with the file's one affine; a 3-D map takes t None (or 0).
 
     Returns
     -------
     labels : (X, Y, Z) uint8, canonical structure ids (STRUCTURES), 0 elsewhere
     affine : (4, 4) float64, voxel index -> RAS+ millimetres
 
-    Raises InputError naming the file for unreadable files, non-3-D images,
+    Raises InputError naming the file for unreadable files, non-3-D images (a 4-D one
+    without `t`, or `t` out of range),
     non-finite labels or labels farther than ROUND_TOLERANCE from an integer,
     bad affines, oversized headers, maps that contain none of the table's
     labels, and (with `require_affine`) files with neither sform nor qform.
@@ -276,7 +378,7 @@ def read_label_map(
     (the affine is then pixdim only, and the orientation a guess).
     """
     path = Path(path)
-    img, shape = _load_header(path)
+    img, shape = _load_header(path, t)
     affine = img.affine
     if affine is None or not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-9:
         raise InputError(f"{path}: affine is missing, non-finite or singular")
@@ -285,7 +387,8 @@ def read_label_map(
         if require_affine:
             raise InputError(f"{what} (require_affine = true)")
         warnings.warn(what, InputWarning, stacklevel=2)
-    img, data = _load_data(path, img)
+    img, data = _load_data(path, img, t)
+    path = f"{path} [t={t}]" if t is not None else path  # the messages below name the frame
     if data.dtype.kind == "f":
         if not np.all(np.isfinite(data)):
             raise InputError(f"{path}: label map has NaN or infinite values")
@@ -357,13 +460,21 @@ def parse_info_cfg(path: Path) -> dict[str, str]:
 
 
 def index_acdc(
-    root: str | Path, source: str, limit: int | None = None, provenance: str | None = None, subject: str = "*"
+    root: str | Path, source: str, limit: int | None = None, provenance: str | None = None, subject: str = "*",
+    predicted: str = ACDC_PREDICTED,
 ) -> list[LabelItem]:
     """ACDC layout: `<root>/**/patientNNN/Info.cfg` and `patientNNN_frameYY_gt.nii.gz`.
 
     Every `_gt` frame present becomes an item. Real ACDC annotates ED and ES
     only, so other frames are recorded as predicted unless `provenance` says
-    otherwise (the phantom passes "phantom").
+    otherwise (the phantom passes "phantom"). Frames are numbered as ACDC numbers
+    them, from 1 (frameYY; Info.cfg's ED and ES).
+
+    `predicted` (a glob in each patient folder, `{subject}` standing for the folder's
+    name; "" for none) finds label maps predicted for every frame, where present: a 4-D
+    map's T index t is ACDC frame t + 1 (its T must equal NbFrame); a 3-D one names its
+    frame as `frameYY`. Their frames are recorded as provenance "predicted", each read
+    from its T index; a frame that has a `_gt` map keeps that one (annotated wins).
     """
     root = _require_dir(root)
     patients = _first_n([p.parent for p in root.rglob(f"{subject}/Info.cfg")], limit)
@@ -374,56 +485,315 @@ def index_acdc(
         info = parse_info_cfg(pdir / "Info.cfg")
         ed, es = int(info["ED"]), int(info["ES"])
         nb = int(info["NbFrame"]) if "NbFrame" in info else None
+        extra = {"group": info.get("Group", ""), "n_frames": nb}
         frames = sorted(pdir.glob(f"{pdir.name}_frame[0-9][0-9]_gt.nii*"))
-        if not frames:
-            raise InputError(f"{pdir}: no *_frameYY_gt.nii.gz files")
+        pred_files = sorted(pdir.glob(predicted.replace("{subject}", pdir.name))) if predicted else []
+        if not frames and not pred_files:
+            also = f" nor predicted label maps ({predicted.replace('{subject}', pdir.name)})" if predicted else ""
+            raise InputError(f"{pdir}: no *_frameYY_gt.nii.gz files{also}")
+        found: dict[int, LabelItem] = {}
+
+        def add(frame: int, path: Path, prov: str, t: int | None = None) -> None:
+            phase = "ED" if frame == ed else "ES" if frame == es else ""
+            found[frame] = LabelItem(
+                item_id(source, pdir.name, frame), source, str(path), pdir.name, ACDC_TABLE,
+                frame=frame, phase=phase, cycle_fraction=None if nb is None else (frame - 1) / nb, provenance=prov,
+                extra=dict(extra), t=t,
+            )
+
         for f in frames:
             frame = int(re.search(r"_frame(\d\d)_gt", f.name).group(1))
-            phase = "ED" if frame == ed else "ES" if frame == es else ""
-            prov = provenance or ("annotated" if phase else "predicted")
-            items.append(
-                LabelItem(
-                    item_id(source, pdir.name, frame), source, str(f), pdir.name, ACDC_TABLE,
-                    frame=frame, phase=phase, cycle_fraction=None if nb is None else (frame - 1) / nb, provenance=prov,
-                    extra={"group": info.get("Group", ""), "n_frames": nb},
-                )
-            )
+            add(frame, f, provenance or ("annotated" if frame in (ed, es) else "predicted"))
+        annotated = set(found)
+        claimed: dict[int, Path] = {}
+        for f in pred_files:
+            if f in frames:
+                continue
+            T = n_frames(f)
+            if T is None:
+                m = re.search(r"frame(\d+)", f.name)
+                if not m:
+                    raise InputError(f"{f}: a 3-D predicted label map (predicted = {predicted!r}) must name its frame "
+                                     f"(frameYY); a 4-D one holds one frame per T index")
+                pairs = [(int(m.group(1)), None)]
+            else:
+                if nb is not None and T != nb:
+                    raise InputError(f"{f}: {T} frames (T) in a predicted 4-D label map, but {pdir.name}/Info.cfg "
+                                     f"has NbFrame: {nb}")
+                pairs = [(t + 1, t) for t in range(T)]
+            for frame, t in pairs:
+                if frame in claimed:
+                    raise InputError(f"{f}: claims {pdir.name} frame {frame}, which {claimed[frame].name} also claims")
+                claimed[frame] = f
+                if frame not in annotated:
+                    add(frame, f, "predicted", t)
+        items += [found[k] for k in sorted(found)]
     return items
 
 
+@dataclass
+class _Claim:
+    """What a file (or a table row) says of itself: its subject, and frame / phase where known."""
+
+    path: Path
+    subject: str
+    frame: int | None = None  # 3-D: the frame number; 4-D: one T index (None: every T index)
+    phase: str = ""
+    provenance: str = ""
+    extra: dict = field(default_factory=dict)
+    where: str = ""  # the file and how it was claimed, for messages
+    from_name: bool = False  # frame / phase read from the file name (regex), not a table
+
+
+def _phase_name(value: str | None, where: str) -> str:
+    """'ED' / 'ES' / '' from a file name's or table's phase text (any case); InputError otherwise."""
+    value = (value or "").strip()
+    if value.upper() in PHASES or not value:
+        return value.upper()
+    raise InputError(f"{where}: phase must be one of {list(PHASES)} (any case) or empty, got {value!r}")
+
+
+def _frame_number(value: str | None, where: str) -> int | None:
+    value = (value or "").strip()
+    if not value:
+        return None
+    if not value.isdigit():
+        raise InputError(f"{where}: frame must be a non-negative integer, got {value!r}")
+    return int(value)
+
+
+def read_frame_table(path: Path, root: Path) -> list[_Claim]:
+    """A frame_table CSV: a header with `file` and `subject` (required), `frame`, `phase`,
+    `provenance` (optional); other columns are kept in each item's `extra`. `file` is relative
+    to `root` (or absolute). InputError naming the table and row for each fault."""
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: cannot read the frame_table ({type(e).__name__}: {e})") from e
+    rows = [(n, r) for n, r in enumerate(rows, start=1) if any(c.strip() for c in r)]
+    if not rows:
+        raise InputError(f"{path}: frame_table is empty (needs a header line: file,subject,frame,phase)")
+    (_, header), body = rows[0], rows[1:]
+    header = [h.strip().lower() for h in header]
+    missing = [c for c in ("file", "subject") if c not in header]
+    if missing:
+        raise InputError(f"{path}: frame_table header needs columns file and subject (optional frame, phase, "
+                         f"provenance), got {header}")
+    if len(set(header)) < len(header):
+        raise InputError(f"{path}: frame_table header names a column twice: {header}")
+    if not body:
+        raise InputError(f"{path}: frame_table has a header and no rows")
+    claims = []
+    for n, r in body:
+        where = f"{path}: row {n}"
+        if len(r) != len(header):
+            raise InputError(f"{where}: {len(r)} fields, the header has {len(header)}")
+        row = {h: v.strip() for h, v in zip(header, r)}
+        if not row["file"] or not row["subject"]:
+            raise InputError(f"{where}: file and subject must not be empty")
+        file = Path(row["file"]) if Path(row["file"]).is_absolute() else root / row["file"]
+        if not file.is_file():
+            raise InputError(f"{where}: file {row['file']!r} not found under {root}")
+        prov = row.get("provenance", "")
+        if prov not in ("", "annotated", "predicted"):
+            raise InputError(f"{where}: provenance must be annotated or predicted (or empty), got {prov!r}")
+        claims.append(_Claim(
+            file, row["subject"], _frame_number(row.get("frame"), where), _phase_name(row.get("phase"), where), prov,
+            {h: v for h, v in row.items() if h not in ("file", "subject", "frame", "phase", "provenance")},
+            where=where,
+        ))
+    return claims
+
+
+def _regex_claims(files: list[Path], root: Path, regex: str) -> tuple[list[_Claim], list[Path]]:
+    """Claims of the files whose relative path (with '/') the regex finds (re.search), and the files it does not."""
+    rx = compile_frame_regex(regex)
+    claims, unmatched = [], []
+    for f in files:
+        rel = f.relative_to(root).as_posix()
+        m = rx.search(rel)
+        if m is None:
+            unmatched.append(f)
+            continue
+        where = f"{f}: regex {regex!r}"
+        groups = m.groupdict()
+        if not groups.get("subject"):
+            raise InputError(f"{where} matched with an empty subject group")
+        claims.append(_Claim(f, groups["subject"], _frame_number(groups.get("frame"), where),
+                             _phase_name(groups.get("phase"), where), where=where, from_name=True))
+    return claims, unmatched
+
+
+def _phase_of(frame: int | None, phase: str, phases: dict[str, int], where: str) -> tuple[int | None, str]:
+    """(frame, phase) with the recipe's `phases` applied: a frame it names gets that phase; a frame
+    known only by its phase gets the frame the recipe gives that phase. InputError when the two disagree."""
+    by_frame = {v: k for k, v in phases.items()}
+    if frame is None:
+        return (phases.get(phase), phase) if phase else (None, "")
+    named = by_frame.get(frame, "")
+    if phase and phase in phases and phases[phase] != frame:
+        raise InputError(f"{where}: frame {frame} is {phase}, but the recipe's phases puts {phase} at frame {phases[phase]}")
+    if phase and named and named != phase:
+        raise InputError(f"{where}: frame {frame} is {phase}, but the recipe's phases makes it {named}")
+    return frame, phase or named
+
+
+def _expand(claims: list[_Claim], source: str, table: dict[int, str], phases: dict[str, int],
+            provenance: str) -> list[LabelItem]:
+    """One item per 3-D file, one per frame (T index) of a 4-D file; InputError for a frame out of range,
+    a 4-D file whose name claims a frame or phase, or one file claimed by two subjects."""
+    by_file: dict[Path, list[_Claim]] = {}
+    for c in claims:
+        by_file.setdefault(c.path, []).append(c)
+    items = []
+    for path, cs in by_file.items():
+        subjects = sorted({c.subject for c in cs})
+        if len(subjects) > 1:
+            raise InputError(f"{cs[1].where}: {path.name} is claimed by subjects {subjects}; a file holds one subject")
+        try:
+            T = n_frames(path)
+        except InputError:  # unreadable here: one item, whose meshing names the problem (as for any bad file)
+            T = None
+        prov = lambda c: c.provenance or provenance  # noqa: E731
+        if T is None:
+            if len(cs) > 1:
+                raise InputError(f"{cs[1].where}: {path.name} is named twice, and it is a 3-D label map (one frame)")
+            c = cs[0]
+            frame, phase = _phase_of(c.frame, c.phase, phases, c.where or str(path))
+            items.append(LabelItem(item_id(source, c.subject, frame, phase), source, str(path), c.subject, table,
+                                   frame=frame, phase=phase, provenance=prov(c), extra=dict(c.extra)))
+            continue
+        bad = {k: v for k, v in phases.items() if v >= T}
+        if bad:
+            k, v = next(iter(bad.items()))
+            raise InputError(f"{path}: the recipe's phases puts {k} at frame {v}, out of range for this 4-D label map "
+                             f"of {T} frames (T indices 0..{T - 1})")
+        chosen: dict[int, _Claim] = {}
+        every = None
+        for c in cs:
+            if c.from_name and (c.frame is not None or c.phase):
+                raise InputError(f"{c.where}: a 4-D label map ({T} frames) numbers its frames by T index; its name "
+                                 f"cannot give a frame or phase (give ED / ES by the recipe's phases or a frame_table)")
+            if c.frame is None:
+                if c.phase:
+                    raise InputError(f"{c.where}: a phase for a 4-D label map needs its frame (the T index)")
+                every = c
+            elif not 0 <= c.frame < T:
+                raise InputError(f"{c.where}: frame {c.frame} out of range for {path.name}, a 4-D label map of "
+                                 f"{T} frames (T indices 0..{T - 1})")
+            elif c.frame in chosen:
+                raise InputError(f"{c.where}: {path.name} frame {c.frame} is named twice")
+            else:
+                chosen[c.frame] = c
+        for t in range(T) if every is not None else sorted(chosen):
+            c = chosen.get(t, every)
+            frame, phase = _phase_of(t, c.phase if t in chosen else "", phases, c.where or str(path))
+            items.append(LabelItem(
+                item_id(source, c.subject, frame), source, str(path), c.subject, table, frame=frame, phase=phase,
+                cycle_fraction=t / T, provenance=prov(c), extra={**c.extra, "n_frames": T}, t=t,
+            ))
+    return items
+
+
+def check_frames(items: list[LabelItem], where: str) -> None:
+    """InputError naming both files when two items claim one subject and frame (or, frames known
+    by phase only, one subject and phase), one subject has two ED or two ES frames, or two items'
+    ids collide after making them file-name safe."""
+    seen: dict[tuple, LabelItem] = {}
+    for li in items:
+        frame = f"frame {li.frame}" if li.frame is not None else f"phase {li.phase}" if li.phase else "(no frame)"
+        for key in ((li.subject, frame), (li.subject, "phase", li.phase) if li.phase else None):
+            if key is None:
+                continue
+            other = seen.get(key)
+            if other is not None:
+                what = frame if len(key) == 2 else f"phase {li.phase} (frames {other.frame} and {li.frame})"
+                here = lambda x: x.path + ("" if x.t is None else f" [t={x.t}]")  # noqa: E731
+                raise InputError(f"{where}: {here(other)} and {here(li)} both claim subject {li.subject!r} {what}")
+            seen[key] = li
+    ids: dict[str, LabelItem] = {}
+    for li in items:
+        if li.item_id in ids:
+            raise InputError(f"{where}: subjects {ids[li.item_id].subject!r} and {li.subject!r} give the same item id "
+                             f"{li.item_id!r} (names are made file-name safe); rename one")
+        ids[li.item_id] = li
+
+
 def index_nifti(
-    root: str | Path, source: str, labels: dict[str, int], limit: int | None = None, pattern: str = ""
+    root: str | Path, source: str, labels: dict[str, int], limit: int | None = None, pattern: str = "",
+    regex: str = "", frame_table: str = "", phases: dict[str, int] | None = None, provenance: str = "annotated",
 ) -> list[LabelItem]:
     """A folder of `*.nii` / `*.nii.gz` label maps, with a recipe label table {structure: value}.
 
-    Only label maps are indexed: with `pattern`, the files whose name matches that glob;
-    without, the files whose content may be a label map (label_map_verdict). An
-    InputWarning names the files skipped and why.
+    Which files: with `frame_table`, the files its rows name; else with `pattern`, the files
+    whose name matches that glob; with `regex`, those whose relative path it finds; with
+    neither, the files whose content may be a label map (label_map_verdict). An InputWarning
+    names the files skipped and why.
+
+    Subjects and frames: from `regex` (named groups subject, frame, phase, re.search over the
+    path relative to `root` with '/'), or the table's columns; else each file is its own
+    subject (its relative path). A 4-D map (X, Y, Z, T) gives one frame per T index, its frame
+    number being the T index (0-based), and its cycle fraction t / T; a 3-D map one item, its
+    frame numbered as the file name or table numbers it. `phases` ({ED: n, ES: m}) names the
+    frames of ED and ES where the name or table does not (a frame known only by its phase
+    takes the recipe's frame for it). `limit`: the first subjects, by name.
+
+    InputError naming the file, the table row or the recipe key: a regex that matches no
+    file, a frame index out of range, a row whose file is missing, two files claiming one
+    subject and frame.
     """
     root = _require_dir(root)
     unknown = sorted(set(labels) - set(STRUCTURES))
     if unknown:
         raise InputError(f"labels: unknown structure names {unknown}; known: {sorted(STRUCTURES)}")
     table = {int(v): k for k, v in labels.items()}
-    nifti = sorted(p for p in root.rglob("*.nii*") if p.name.endswith((".nii", ".nii.gz")))
-    if pattern:
-        chosen = [p for p in nifti if p.match(pattern)]
-        skipped = {p: f"name does not match {pattern!r}" for p in nifti if p not in chosen}
+    phases = dict(phases or {})
+    if frame_table:
+        table_path = Path(frame_table) if Path(frame_table).is_absolute() else root / frame_table
+        if not table_path.is_file():
+            raise InputError(f"frame_table: {table_path} not found")
+        claims = read_frame_table(table_path, root)
     else:
-        skipped = {p: why for p in nifti if (why := label_map_verdict(p))}
-        chosen = [p for p in nifti if p not in skipped]
-    if skipped:
-        listed = "; ".join(f"{p.relative_to(root)} ({why})" for p, why in skipped.items())
-        warnings.warn(f"{root}: skipped {len(skipped)} file(s) that are not label maps: {listed}", InputWarning, stacklevel=2)
-    files = _first_n(chosen, limit)
-    if not nifti:
-        raise InputError(f"{root}: no *.nii or *.nii.gz files found")
-    if not files:
-        raise InputError(f"{root}: none of the {len(nifti)} *.nii / *.nii.gz files is a label map (see the warning)")
-    items = []
-    for f in files:
-        subject = re.sub(r"\.nii(\.gz)?$", "", str(f.relative_to(root))).replace("/", "_")
-        items.append(LabelItem(item_id(source, subject), source, str(f), subject, table))
+        nifti = sorted(p for p in root.rglob("*.nii*") if p.name.endswith((".nii", ".nii.gz")))
+        if not nifti:
+            raise InputError(f"{root}: no *.nii or *.nii.gz files found")
+        if pattern:
+            chosen = [p for p in nifti if p.match(pattern)]
+            skipped = {p: f"name does not match {pattern!r}" for p in nifti if p not in chosen}
+        elif regex:
+            chosen, skipped = nifti, {}
+        else:
+            skipped = {p: why for p in nifti if (why := label_map_verdict(p))}
+            chosen = [p for p in nifti if p not in skipped]
+        if regex:
+            claims, unmatched = _regex_claims(chosen, root, regex)
+            skipped.update({p: f"path not matched by regex {regex!r}" for p in unmatched})
+            if not claims:
+                first = chosen[0].relative_to(root).as_posix() if chosen else "(none)"
+                raise InputError(f"regex: {regex!r} matches none of the {len(chosen)} label map(s) under {root} "
+                                 f"(searched in each relative path, e.g. {first!r})")
+        else:
+            claims = [_Claim(p, re.sub(r"\.nii(\.gz)?$", "", str(p.relative_to(root))).replace("/", "_"), where=str(p))
+                      for p in chosen]
+        if skipped:
+            listed = "; ".join(f"{p.relative_to(root)} ({why})" for p, why in skipped.items())
+            warnings.warn(f"{root}: skipped {len(skipped)} file(s) that are not label maps: {listed}", InputWarning, stacklevel=2)
+        if not claims:
+            raise InputError(f"{root}: none of the {len(nifti)} *.nii / *.nii.gz files is a label map (see the warning)")
+    subjects = sorted({c.subject for c in claims})
+    if limit is not None:
+        keep = set(subjects[:limit])
+        claims = [c for c in claims if c.subject in keep]
+    items = _expand(claims, source, table, phases, provenance or "annotated")
+    # Subjects in the order their first file comes (path order for a folder), frames in order within each.
+    first = {}
+    for li in items:
+        first.setdefault(li.subject, len(first))
+    order = {"ED": 0, "ES": 1, "": 2}
+    items.sort(key=lambda li: (first[li.subject], li.frame is None, li.frame or 0, order[li.phase], li.path))
+    check_frames(items, f"[[sources]] {source}" + (f" (frame_table {frame_table})" if frame_table else
+                                                    f" (regex {regex!r})" if regex else ""))
     return items
 
 
