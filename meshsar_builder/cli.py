@@ -39,11 +39,13 @@ def cmd_splits(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from meshsar_builder.dataset.verify import verify
+    from meshsar_builder.dataset.verify import notes, verify
 
     problems = verify(Path(args.out))
     for p in problems:
         print(p)
+    for n in notes(Path(args.out)):  # e.g. a split grouped by sample, an opt-in
+        print(f"note: {n}")
     print(f"{len(problems)} problem(s)" if problems else f"{args.out}: dataset verified")
     return 1 if problems else 0
 

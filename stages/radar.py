@@ -40,9 +40,12 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
             meta = {"source": name, "subject": sid, "frame": None, "phase": "", "provenance": "shape_model",
                     "subset": "ssm", "ssm_coeffs": s["coeffs"], "shape_model": rec["shape_model"]}
             out.append((sid, str(ctx.stage_dir("sources") / name / f"{sid}.ply"), meta))
+    cohorts = {s.name: s.cohort for s in ctx.recipe.sources if getattr(s, "cohort", "")}
     for mid, rec in results.of("remesh").items():
         if rec["use"] == "direct":
             meta = {k: rec[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")}
+            if rec["source"] in cohorts:  # sources sharing subject names: splits group across them
+                meta["cohort"] = cohorts[rec["source"]]
             out.append((mid, str(ctx.stage_dir("remesh") / f"{mid}.ply"), {**meta, "subset": "direct"}))
     return out
 

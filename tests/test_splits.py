@@ -7,7 +7,18 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from meshsar_builder.dataset.splits import largest_remainder, make_split, parse_ratios, split_dataset, write_split
+from meshsar_builder.dataset.splits import (
+    SplitWarning,
+    group_key,
+    largest_remainder,
+    make_split,
+    parse_ratios,
+    read_split,
+    split_dataset,
+    subject_leaks,
+    write_split,
+)
+from meshsar_builder.dataset.verify import notes, verify
 from meshsar_builder.pipeline.errors import InputError
 
 from .test_shards import tiny_dataset
@@ -129,3 +140,107 @@ def test_split_dataset_reads_only_the_index(tmp_path):
     assert path == tmp_path / "splits" / "seed-4.json"
     with pytest.raises(InputError, match="index.json"):
         split_dataset(tmp_path / "nowhere", 0)
+
+
+# --- subjects grouped across sources (cohorts), and splits that leak refused ----------------------
+
+
+def cohort_index(subjects: list[tuple[int, int, int]]) -> dict:
+    """Per subject k: (annotated frames, predicted frames, frames of an unrelated source with the same
+    names); sources "gt" and "pred" share cohort "c", "other" has none. Plus a few SSM samples."""
+    samples, ids = {}, []
+
+    def add(sid, **s):
+        samples[sid] = s
+        ids.append(sid)
+
+    for k, (n_gt, n_pred, n_other) in enumerate(subjects):
+        for f in range(n_gt):
+            add(f"gt-p{k:02d}-f{f:02d}", source="gt", cohort="c", subject=f"p{k:02d}", subset="direct")
+        for f in range(n_pred):
+            add(f"pred-p{k:02d}-f{f:02d}", source="pred", cohort="c", subject=f"p{k:02d}", subset="direct")
+        for f in range(n_other):
+            add(f"other-p{k:02d}-f{f:02d}", source="other", subject=f"p{k:02d}", subset="direct")
+    for i in range(3):
+        add(f"ssm-{i:05d}", source="phantom_wh", subject=f"ssm-{i:05d}", subset="ssm")
+    return {"samples": samples, "shards": [{"sample_ids": ids}]}
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    subjects=st.lists(st.tuples(st.integers(0, 3), st.integers(0, 6), st.integers(0, 2)), min_size=2, max_size=9),
+    ratios=st.sampled_from([{"train": 0.8, "test": 0.2}, {"train": 0.6, "val": 0.2, "test": 0.2},
+                            {"a": 1.0, "b": 1.0}]),
+    seed=st.integers(0, 2**31),
+)
+def test_frames_of_a_subject_never_leak_across_sources_of_a_cohort(subjects, ratios, seed):
+    index = cohort_index(subjects)
+    split = make_split(index, seed, ratios)
+    check_partition(index, split)
+    assert subject_leaks(split, index["samples"]) == {}
+    where = {}
+    for n in names(split):
+        for sid in split[n]:
+            s = index["samples"][sid]
+            # annotated and predicted frames of one patient: one part, whichever source
+            assert where.setdefault(group_key(s), n) == n, (group_key(s), n)
+    assert {group_key(s) for s in index["samples"].values() if s["source"] == "pred"} <= {
+        f"c/p{k:02d}" for k in range(len(subjects))}
+
+
+def test_same_names_in_sources_without_a_cohort_are_different_subjects():
+    index = cohort_index([(0, 0, 2)] * 6)
+    for sid, s in list(index["samples"].items())[:12]:
+        index["samples"][sid.replace("other", "else")] = {**s, "source": "else"}
+        index["shards"][0]["sample_ids"].append(sid.replace("other", "else"))
+    keys = {group_key(s) for s in index["samples"].values()}
+    assert "other/p00" in keys and "else/p00" in keys
+    # with one seed or another, some patient p0k of "other" and of "else" land apart: no cohort, no grouping
+    assert any(subject_leaks(make_split(index, seed), {sid: {**s, "source": "x", "cohort": ""}
+                                                        for sid, s in index["samples"].items()})
+               for seed in range(10))
+
+
+def test_a_group_spanning_subsets_goes_whole_to_one_part():
+    index = cohort_index([(2, 2, 0)] * 5)
+    for sid in [s for s in index["samples"] if s.startswith("pred-")]:
+        index["samples"][sid]["subset"] = "zz"  # a cohort spread over two subsets
+    for seed in range(30):
+        assert subject_leaks(make_split(index, seed), index["samples"]) == {}
+
+
+def test_reading_a_leaking_split_is_refused_naming_the_subject(tmp_path):
+    index, _ = tiny_dataset(tmp_path, n_ssm=2, direct=(3, 3, 3, 3, 3))
+    split = make_split(index, 0, {"train": 0.6, "test": 0.4})
+    write_split(tmp_path, split)
+    assert read_split(tmp_path, 0) == split  # a sound split reads as written
+    moved = next(sid for sid in split["train"] if index["samples"][sid]["subset"] == "direct")
+    subject = index["samples"][moved]["subject"]
+    split["train"].remove(moved)
+    split["test"].append(moved)
+    write_split(tmp_path, split)
+    with pytest.raises(InputError, match=rf"seed-0.json: a subject-grouped split with 1 subject\(s\) in two parts, "
+                                         rf"which leaks them between parts: subject phantom_bv/{subject} in"):
+        read_split(tmp_path, 0)
+    (problem,) = verify(tmp_path)
+    assert problem.startswith(f"splits/seed-0.json: subject-grouped split with 1 subject(s) in two parts: "
+                              f"subject phantom_bv/{subject} in test (1) and train (2)")
+    # the same split marked as grouped by sample, an opt-in: read with a warning that names it; verify notes it
+    write_split(tmp_path, {**split, "group_by": "sample"})
+    with pytest.warns(SplitWarning, match=rf'group_by = "sample" \(opt-in\): 1 subject\(s\) .* phantom_bv/{subject}'):
+        read_split(tmp_path, 0)
+    assert verify(tmp_path) == []
+    (note,) = notes(tmp_path)
+    assert note.startswith('splits/seed-0.json: group_by = "sample" (opt-in): not grouped by subject; 1 subject(s) in '
+                           'several parts')
+    write_split(tmp_path, {**split, "group_by": "visit"})
+    with pytest.raises(InputError, match=r"group_by must be one of \('subject', 'sample'\), got 'visit'"):
+        read_split(tmp_path, 0)
+    assert any("group_by must be one of" in p for p in verify(tmp_path))
+
+
+def test_a_built_sample_grouped_split_is_noted_without_leaks_when_none(tmp_path):
+    index, _ = tiny_dataset(tmp_path, n_ssm=4, direct=())
+    write_split(tmp_path, make_split(index, 0, group_by="sample"))
+    assert notes(tmp_path) == ['splits/seed-0.json: group_by = "sample" (opt-in): not grouped by subject; '
+                               'no subject is in two parts']

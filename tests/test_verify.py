@@ -75,7 +75,11 @@ def test_split_naming_unknown_id_is_reported(dataset):
     assert problems[0] == "splits/seed-0.json: split 'test' names 1 id(s) not in the index: ['ghost-00001']"
     # the file's keys are sorted (canonical JSON), so 'test' is read first
     assert problems[1] == f"splits/seed-0.json: sample {split['train'][0]} is in both 'test' and 'train'"
-    assert len(problems) == 2
+    # and its subject is then in two parts of a subject-grouped split
+    s = json.loads((root / "index.json").read_text())["samples"][split["train"][0]]
+    assert problems[2] == (f"splits/seed-0.json: subject-grouped split with 1 subject(s) in two parts: "
+                           f"subject {s['source']}/{s['subject']} in test (1) and train (1)")
+    assert len(problems) == 3
 
 
 def test_missing_index_is_reported(tmp_path):

@@ -272,6 +272,8 @@ def build_index(*, recipe: str, recipe_sha256: str, code_version: str, metadata:
             m = metas[sid]
             samples[sid] = {"shard": k, "row": row, "source": m["source"], "subject": m["subject"], "subset": m["subset"],
                             "noise_floor_db": m.get("noise_floor_db")}
+            if m.get("cohort"):  # a subject namespace shared by sources (splits.group_key)
+                samples[sid]["cohort"] = m["cohort"]
     subjects = {}
     for s in samples.values():
         subjects.setdefault(s["subset"], set()).add((s["source"], s["subject"]))

@@ -2,12 +2,20 @@
 
 A split file `splits/seed-<S>.json` holds {"seed", "ratios", "group_by", and
 per ratio name the list of sample ids}. Samples are grouped (group_by
-"subject": the frames of one subject of one source form a group, an SSM sample
-is its own subject; "sample": every sample alone) and whole groups go to one
-split, so no subject leaks from train into test.
+"subject": the frames of one subject form a group, an SSM sample is its own
+subject; "sample": every sample alone, an explicit opt-in) and whole groups go
+to one split, so no subject leaks from train into test. A subject is named
+within its source, or within its cohort where sources declare one (`cohort` in
+[[sources]]: annotated and predicted frames of the same patients), so grouping
+crosses those sources (group_key). Reading a subject-grouped split
+(read_split, and `meshsar verify`) refuses one in which a subject is in two
+parts, naming it; a sample-grouped one is read with a SplitWarning naming the
+subjects it spreads over several parts.
 
 Rule, per subset (ssm, direct, ...; so each subset is split in the given
 ratios rather than only the total):
+A group whose samples lie in several subsets (a cohort spanning them) is
+allocated, whole, with the first of them in sorted order.
 1. the subset's N samples get integer targets by the largest-remainder rule
    over the normalised ratios (ties to the name first in sorted order);
 2. its groups, sorted by key, are permuted by a generator seeded from (seed,
@@ -24,6 +32,7 @@ single-sample groups the targets are met exactly. Ids are listed in dataset
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,6 +57,40 @@ class SplitParams:
 
 RESERVED = ("seed", "ratios", "group_by")
 GROUP_BY = ("subject", "sample")
+
+
+class SplitWarning(UserWarning):
+    """A split that may hold one subject in several parts (group_by = "sample", an opt-in)."""
+
+
+def group_key(sample: dict) -> str:
+    """The subject a sample of the index belongs to: `<cohort or source>/<subject>`."""
+    return f"{sample.get('cohort') or sample['source']}/{sample['subject']}"
+
+
+def subject_leaks(split: dict, samples: dict) -> dict[str, dict[str, int]]:
+    """Subjects whose samples lie in more than one part of `split`: {group_key: {part: n samples}}.
+
+    samples : the index's "samples" (id -> source, subject, cohort where declared); ids it does not
+    know are left out (verify reports them separately).
+    """
+    parts: dict[str, dict[str, int]] = {}
+    for name in split.get("ratios", {}):
+        ids = split.get(name)
+        if name in RESERVED or not isinstance(ids, list):
+            continue
+        for sid in ids:
+            if isinstance(sid, str) and sid in samples:
+                counts = parts.setdefault(group_key(samples[sid]), {})
+                counts[name] = counts.get(name, 0) + 1
+    return {key: counts for key, counts in sorted(parts.items()) if len(counts) > 1}
+
+
+def describe_leaks(leaks: dict[str, dict[str, int]], limit: int = 5) -> str:
+    """'subject acdc/patient001 in train (1) and test (1); ...' for the first `limit` leaks."""
+    text = "; ".join(f"subject {key} in " + " and ".join(f"{n} ({c})" for n, c in counts.items())
+                     for key, counts in list(leaks.items())[:limit])
+    return text + (f"; and {len(leaks) - limit} more" if len(leaks) > limit else "")
 
 
 def parse_ratios(text: str) -> dict[str, float]:
@@ -98,10 +141,13 @@ def make_split(index: dict, seed: int, ratios: dict[str, float] | None = None, g
     weights = np.array([ratios[n] for n in names], dtype=np.float64)
     position = {sid: k for k, sid in enumerate(sid for shard in index["shards"] for sid in shard["sample_ids"])}
     chosen: dict[str, list[str]] = {n: [] for n in names}
-    by_subset: dict[str, dict[str, list[str]]] = {}
+    groups_all: dict[str, list[str]] = {}
     for sid, s in index["samples"].items():
-        key = f"{s['source']}/{s['subject']}" if group_by == "subject" else sid
-        by_subset.setdefault(s["subset"], {}).setdefault(key, []).append(sid)
+        groups_all.setdefault(group_key(s) if group_by == "subject" else sid, []).append(sid)
+    by_subset: dict[str, dict[str, list[str]]] = {}
+    for key, members in groups_all.items():
+        subset = min(index["samples"][sid]["subset"] for sid in members)
+        by_subset.setdefault(subset, {})[key] = members
     for subset in sorted(by_subset):
         groups = by_subset[subset]
         keys = sorted(groups)
@@ -127,8 +173,11 @@ def write_split(out_dir: str | os.PathLike, split: dict) -> Path:
     return path
 
 
-def read_split(out_dir: str | os.PathLike, seed: int) -> dict:
-    """OUT/splits/seed-<S>.json; InputError naming the file when missing or malformed."""
+def read_split(out_dir: str | os.PathLike, seed: int, index: dict | None = None) -> dict:
+    """OUT/splits/seed-<S>.json; InputError naming the file when missing or malformed, or when it
+    groups by subject (the default) and a subject of the index (`index`, else OUT/index.json)
+    has samples in two parts, naming the subjects. A split grouped by sample is read, with a
+    SplitWarning naming the subjects in several parts."""
     path = split_path(out_dir, seed)
     try:
         split = read_json(path)
@@ -140,6 +189,17 @@ def read_split(out_dir: str | os.PathLike, seed: int) -> dict:
     bad = [n for n in split["ratios"] if not isinstance(split.get(n), list)]
     if bad:
         raise InputError(f"{path}: no id list for splits {bad}")
+    group_by = split.get("group_by", "subject")
+    if group_by not in GROUP_BY:
+        raise InputError(f"{path}: group_by must be one of {GROUP_BY}, got {group_by!r}")
+    leaks = subject_leaks(split, (index if index is not None else read_index(out_dir))["samples"])
+    if leaks and group_by == "subject":
+        raise InputError(f"{path}: a subject-grouped split with {len(leaks)} subject(s) in two parts, which leaks "
+                         f"them between parts: {describe_leaks(leaks)}")
+    if leaks:
+        warnings.warn(f"{path}: group_by = \"sample\" (opt-in): {len(leaks)} subject(s) have samples in several "
+                      f"parts, so its parts are not subject-independent: {describe_leaks(leaks)}", SplitWarning,
+                      stacklevel=2)
     return split
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from meshsar_builder.dataset.shards import INDEX_NAME, SHARD_DIR, read_index, structure_problems
-from meshsar_builder.dataset.splits import RESERVED
+from meshsar_builder.dataset.splits import GROUP_BY, RESERVED, describe_leaks, subject_leaks
 from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import read_json, sha256_file
 
@@ -87,13 +87,16 @@ def _shard_problems(root: Path, entry: dict, index: dict) -> list[str]:
     return problems
 
 
-def _split_problems(path: Path, known: set[str]) -> list[str]:
+def _split_problems(path: Path, known: set[str], samples: dict | None = None) -> list[str]:
     try:
         split = read_json(path)
         names = list(split["ratios"])
     except (OSError, ValueError, KeyError, TypeError) as e:
         return [f"not a readable split file ({type(e).__name__}: {e})"]
     problems, seen = [], {}
+    group_by = split.get("group_by", "subject")
+    if group_by not in GROUP_BY:
+        problems.append(f"group_by must be one of {GROUP_BY}, got {group_by!r}")
     for name in names:
         if name in RESERVED or not isinstance(split.get(name), list):
             problems.append(f"split '{name}' has no id list")
@@ -105,6 +108,9 @@ def _split_problems(path: Path, known: set[str]) -> list[str]:
             if sid in seen and seen[sid] != name:
                 problems.append(f"sample {sid} is in both '{seen[sid]}' and '{name}'")
             seen[sid] = name
+    leaks = subject_leaks(split, samples or {}) if group_by == "subject" else {}
+    if leaks:
+        problems.append(f"subject-grouped split with {len(leaks)} subject(s) in two parts: {describe_leaks(leaks)}")
     return problems
 
 
@@ -116,7 +122,8 @@ def verify(out_dir: str | os.PathLike) -> list[str]:
     dtypes, shapes, monotone offsets, face indices in range, finite values, sar
     intensity in [0, 1], JSON meta) and the index's sample ids; ids unique over
     shards; no unlisted shard files; every split file's ids known to the index
-    and in one split only.
+    and in one split only, and in a subject-grouped split no subject (splits.group_key:
+    cohort or source, and subject) in two parts.
     """
     root = Path(out_dir)
     try:
@@ -142,5 +149,27 @@ def verify(out_dir: str | os.PathLike) -> list[str]:
         if rel not in listed:
             problems.append(f"{rel}: shard file not listed in {INDEX_NAME}")
     for path in sorted((root / "splits").glob("*.json")):
-        problems += [f"{path.relative_to(root).as_posix()}: {p}" for p in _split_problems(path, set(owner))]
+        problems += [f"{path.relative_to(root).as_posix()}: {p}" for p in _split_problems(path, set(owner), index["samples"])]
     return problems
+
+
+def notes(out_dir: str | os.PathLike) -> list[str]:
+    """What `meshsar verify` reports besides problems: each split grouped by sample (an explicit
+    opt-in), and how many subjects it spreads over several parts."""
+    root = Path(out_dir)
+    try:
+        samples = read_index(root)["samples"]
+    except InputError:
+        return []
+    out = []
+    for path in sorted((root / "splits").glob("*.json")):
+        try:
+            split = read_json(path)
+        except (OSError, ValueError):
+            continue
+        if isinstance(split, dict) and split.get("group_by") == "sample":
+            leaks = subject_leaks(split, samples)
+            out.append(f"{path.relative_to(root).as_posix()}: group_by = \"sample\" (opt-in): not grouped by subject; "
+                       + (f"{len(leaks)} subject(s) in several parts: {describe_leaks(leaks, 3)}" if leaks
+                          else "no subject is in two parts"))
+    return out
