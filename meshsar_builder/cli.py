@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from meshsar_builder.pipeline.errors import MeshsarError
+from meshsar_builder.pipeline.lock import folder_lock, refuse_if_locked
 
 
 def cmd_build(args: argparse.Namespace) -> int:
@@ -20,7 +21,7 @@ def cmd_build(args: argparse.Namespace) -> int:
         recipe = recipe_mod.override(recipe, "radar", "device", args.device, "--device")
     out = Path(args.out) if args.out else Path("build") / recipe.name
     results = build(recipe, out, workers=args.workers, until=args.until, force=tuple(args.force),
-                    scheduler=args.scheduler)
+                    scheduler=args.scheduler, break_lock=args.break_lock)
     print(format_summary(results))
     print(f"\noutput: {out}")
     return 1 if results.failures else 0
@@ -34,13 +35,15 @@ def cmd_splits(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"error: --ratios: {e}", file=sys.stderr)
         return 2
-    print(split_dataset(Path(args.out), args.seed, ratios))
+    with folder_lock(args.out, create=False):  # never beside a build writing the index
+        print(split_dataset(Path(args.out), args.seed, ratios))
     return 0
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
     from meshsar_builder.dataset.verify import notes, verify
 
+    refuse_if_locked(args.out)  # a build in progress rewrites what would be checked
     problems = verify(Path(args.out))
     for p in problems:
         print(p)
@@ -53,7 +56,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
 def cmd_preview(args: argparse.Namespace) -> int:
     from meshsar_builder.dataset.card import preview
 
-    print(preview(Path(args.out), args.n))
+    with folder_lock(args.out, create=False):  # card/ is the build's card stage's folder too
+        print(preview(Path(args.out), args.n))
     return 0
 
 
@@ -84,6 +88,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 def cmd_train(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.train import train
 
+    refuse_if_locked(args.data)  # a build in progress rewrites the index and shards
     print(train(args.config, args.data, args.split, args.out, device=args.device).run)
     return 0
 
@@ -91,6 +96,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.evaluate import evaluate
 
+    refuse_if_locked(args.data)
     evaluate(args.run, args.data, args.split, renders=args.renders, device=args.device, checkpoint=args.checkpoint,
              compare=tuple(args.compare), samples=args.samples)
     print((Path(args.run) / f"eval-{args.split}" / "summary.md").read_text())
@@ -106,6 +112,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
         print(f"error: --seeds: expected comma-separated integers, got {args.seeds!r}", file=sys.stderr)
         return 2
     variants = tuple(args.variants.split(",")) if args.variants else VARIANTS
+    refuse_if_locked(args.data)
     print(markdown(ablate(args.config, args.data, args.split, seeds, variants, args.epochs, args.device, args.out,
                           args.samples)))
     return 0
@@ -114,6 +121,8 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 def cmd_predict(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.predict import predict
 
+    if args.data:
+        refuse_if_locked(args.data)
     print(predict(args.run, args.data, args.split, args.subset, args.images, args.device, args.out, args.checkpoint,
                   args.gallery))
     return 0
@@ -143,6 +152,10 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--force", metavar="STAGE", action="append", default=[], help="rerun every item of STAGE (repeatable)")
     b.add_argument("--device", metavar="DEVICE", help="where the radar stage's echo and imaging run: cpu, cuda or "
                                                       "cuda:N (sets [radar] device; default: the recipe's, cpu)")
+    b.add_argument("--break-lock", action="store_true",
+                   help="take over the output folder's lock even when it was taken on another host (a shared "
+                        "filesystem): only once that build has stopped. A lock left by a build of this host "
+                        "that is gone is taken over without it")
     b.set_defaults(func=cmd_build)
     s = sub.add_parser("splits", help="write splits/seed-S.json from the index (shards are not read)",
                        epilog="docs: docs/data.md (splits)")

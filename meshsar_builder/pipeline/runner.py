@@ -11,7 +11,8 @@ bookkeeping every stage shares:
   matches and whose outputs exist is skipped;
 - failures: an exception in an item is recorded (stage, item, type, message)
   and the batch goes on; failures.json and the summary list them at the end;
-- temporaries left by a killed run are removed before a stage runs;
+- temporaries left by a killed run are removed before a stage runs (safe: the build
+  holds the folder's lock, lock.py, so no other build has files in flight there);
 - passes: a stage whose items feed another round of itself (the register stage's
   groupwise template) is planned and run again while its `again` hook says so; each
   pass is planned after the previous one finished, its items still run side by side
@@ -47,6 +48,7 @@ from meshsar_builder.pipeline.io import (
     write_bytes,
     write_json,
 )
+from meshsar_builder.pipeline.lock import folder_lock
 from meshsar_builder.pipeline.recipe import Recipe
 
 # A full disk, a read-only or unwritable output folder, an exhausted quota.
@@ -402,11 +404,16 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bo
 
 
 def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None, force: tuple[str, ...] = (),
-          scheduler: str | None = None) -> Results:
+          scheduler: str | None = None, break_lock: bool = False, command: str | None = None) -> Results:
     """Run the registered stages in order up to `until`; write failures.json and the recipe copy.
 
     Items run in this process (workers=1), on `workers` local processes, or on a
     Dask cluster (`scheduler`), with the same outputs byte for byte.
+
+    The build holds `out`'s lock (lock.py) from before its first write to after its last:
+    a second build into the same folder is refused at once (FolderLocked), a lock left by
+    a killed build of this host is taken over, and `break_lock` also takes over one held
+    from another host. `command` is recorded in the lock (default: this process's command line).
     """
     stages = available_stages()
     for name in (until, *force):
@@ -415,23 +422,24 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
     if until is not None:
         names = list(stages)
         stages = {name: stages[name] for name in names[: names.index(until) + 1]}
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        write_bytes(out / "recipe.toml", recipe.text.encode("utf-8"))
-    except OSError as e:
-        raise MeshsarError(f"{out}: output folder is not writable ({e.strerror})") from e
-    ctx = Context(out=out, recipe=recipe)
-    results = Results()
-    pool = make_pool(workers, scheduler)
-    try:
-        for stage in stages.values():  # every stage that will run, before the first runs
-            check_stage(ctx, stage, pool)
-        for name, stage in stages.items():
-            run_stage(ctx, stage, results, pool, force=name in force)
-    finally:
-        if pool is not None:
-            pool.close()
-    write_json(out / "failures.json", results.failures)
+    out = Path(out)
+    with folder_lock(out, command, break_lock):
+        try:
+            write_bytes(out / "recipe.toml", recipe.text.encode("utf-8"))
+        except OSError as e:
+            raise MeshsarError(f"{out}: output folder is not writable ({e.strerror})") from e
+        ctx = Context(out=out, recipe=recipe)
+        results = Results()
+        pool = make_pool(workers, scheduler)
+        try:
+            for stage in stages.values():  # every stage that will run, before the first runs
+                check_stage(ctx, stage, pool)
+            for name, stage in stages.items():
+                run_stage(ctx, stage, results, pool, force=name in force)
+        finally:
+            if pool is not None:
+                pool.close()
+        write_json(out / "failures.json", results.failures)
     return results
 
 
