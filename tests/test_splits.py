@@ -244,3 +244,38 @@ def test_a_built_sample_grouped_split_is_noted_without_leaks_when_none(tmp_path)
     write_split(tmp_path, make_split(index, 0, group_by="sample"))
     assert notes(tmp_path) == ['splits/seed-0.json: group_by = "sample" (opt-in): not grouped by subject; '
                                'no subject is in two parts']
+
+
+def test_a_cohort_travels_from_the_recipe_through_meta_and_index_to_the_split(tmp_path):
+    """The radar stage puts a source's cohort in its samples' meta, the index keeps it, and the split
+    groups a patient's annotated and predicted frames together."""
+    from types import SimpleNamespace
+
+    from meshsar_builder.dataset.shards import build_index
+    from meshsar_builder.pipeline import recipe as R
+    from stages.radar import dataset_meshes
+
+    from .test_shards import METADATA
+
+    recipe = R.parse('name = "c"\n'
+                     '[[sources]]\nkind = "nifti"\nname = "gt"\npath = "a"\nlabels = { lv = 1 }\ncohort = "cine"\n'
+                     '[[sources]]\nkind = "nifti"\nname = "pred"\npath = "b"\nlabels = { lv = 1 }\ncohort = "cine"\n'
+                     '[[sources]]\nkind = "nifti"\nname = "other"\npath = "c"\nlabels = { lv = 1 }\n')
+    remesh = {f"{src}-p{k}-f{f:02d}": {"use": "direct", "source": src, "subject": f"p{k}", "frame": f, "phase": "",
+                                        "cycle_fraction": None, "provenance": "annotated"}
+              for src in ("gt", "pred", "other") for k in range(6) for f in range(3 if src == "pred" else 1)}
+    results = SimpleNamespace(of=lambda stage: remesh if stage == "remesh" else {})
+    ctx = SimpleNamespace(recipe=recipe, stage_dir=lambda name: tmp_path / name)
+    metas = {sid: meta for sid, _, meta in dataset_meshes(ctx, results)}
+    assert metas["gt-p0-f00"]["cohort"] == metas["pred-p0-f02"]["cohort"] == "cine"
+    assert "cohort" not in metas["other-p0-f00"]  # no cohort: the meta is as it was
+    ids = list(metas)
+    index = build_index(recipe="c", recipe_sha256="0" * 64, code_version="test", metadata=METADATA, shard_size=64,
+                        shards=[{"file": "shards/shard-00000.npz", "n": len(ids), "sha256": "0" * 64, "sample_ids": ids}],
+                        metas=metas)
+    assert index["samples"]["pred-p3-f01"]["cohort"] == "cine" and "cohort" not in index["samples"]["other-p3-f00"]
+    for seed in range(40):
+        split = make_split(index, seed, {"train": 0.5, "test": 0.5})
+        assert subject_leaks(split, index["samples"]) == {}
+        part = {sid: n for n in names(split) for sid in split[n]}
+        assert all(part[f"gt-p{k}-f00"] == part[f"pred-p{k}-f{f:02d}"] for k in range(6) for f in range(3))
