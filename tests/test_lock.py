@@ -263,4 +263,4 @@ def test_a_build_killed_with_sigkill_leaves_a_lock_the_rerun_takes_over_and_resu
     assert f"took over the lock of {out} left by a process that is gone" in err and f"pid {proc.pid}" in err
     assert not (out / LOCK_NAME).exists()
     items, ran, skipped, failed = next(line.split()[1:5] for line in stdout.splitlines() if line.startswith("sources"))
-    assert items == "41" and int(skipped) >= 2 and int(ran) == 41 - int(skipped) and failed == "0", stdout
+    assert items == "41" and int(skipped) >= 2 and int(ran) == 41 - int(skipped) and failed == "0", (stdout, err[-3000:])
