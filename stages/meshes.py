@@ -64,7 +64,9 @@ def run(ctx: Context, item: Item) -> dict:
         "volume_ml": round(float(mesh.volume) / 1000.0, 4),
         "euler": int(mesh.euler_number),
         "watertight": bool(mesh.is_watertight),
-        "closing_voxels": surf.closing_voxels,
+        # The topology repair's record (empty when the union was genus 0 as it was): what each
+        # step changed, the handles cut or filled and where, volume changes, surface shift.
+        "repair": surf.repair,
         "spacing_mm": ctx.recipe.meshing.spacing_mm,
         "center_mm": [round(float(c), 4) for c in (lo + hi) / 2],
         # from voxel counts of the label map: chamber volumes over the cycle, for the dataset card
@@ -76,4 +78,4 @@ def run(ctx: Context, item: Item) -> dict:
     }
 
 
-STAGE = Stage(name=NAME, version=3, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=4, plan=plan, run=run)

@@ -77,23 +77,31 @@ def test_signed_distance_zero_halfway_between_voxels():
     assert sd[4, 4, 4] == pytest.approx(-2.0) and sd[5, 4, 4] == pytest.approx(2.0)
 
 
-def test_torus_with_small_hole_is_closed():
-    """A ring whose hole (4 mm across) survives smoothing is closed by morphological closing."""
+def test_torus_with_small_hole_is_filled():
+    """A ring whose hole (4 mm across) survives smoothing: the repair fills the hole, the cheaper
+    change, and says where."""
     coords = np.arange(60) - 29.5
     X, Y, Z = np.meshgrid(coords, coords, coords, indexing="ij")
     rho = np.hypot(X, Y)
     mask = (rho - 10.0) ** 2 + Z**2 <= 8.0**2
     assert not mask[30, 30, 30]  # a real hole
     s, m = mesh_of(mask, np.eye(4))
-    assert m.is_watertight and m.euler_number == 2 and s.closing_voxels > 0
+    assert m.is_watertight and m.euler_number == 2
+    (handle,) = s.repair["handles"]
+    assert handle["kind"] == "fill" and handle["structures"] == ["lv"]
+    np.testing.assert_allclose(handle["position_mm"], (29.5, 29.5, 29.5), atol=1.0)  # the hole's centre
+    assert s.repair["euler_before"] == 0 and abs(s.repair["volume_change"]["lv"]) < 0.01
 
 
-def test_torus_with_large_hole_fails_with_reason():
+def test_torus_whose_repair_is_too_large_fails_with_figures():
+    """A thick ring around a wide hole: cutting it (the cheaper change) takes 2.3 % of its volume."""
     coords = np.arange(80) - 39.5
     X, Y, Z = np.meshgrid(coords, coords, coords, indexing="ij")
     mask = (np.hypot(X, Y) - 25.0) ** 2 + Z**2 <= 6.0**2
-    with pytest.raises(MeshError, match=r"not closed genus 0 \(euler=0"):
+    with pytest.raises(MeshError, match=r"topology repair too large: volume change \{'lv': -0\.0\d+\} \(limit 2%\).*cut \d+ vox at"):
         mesh_of(mask, np.eye(4))
+    s, m = mesh_of(mask, np.eye(4), MeshingParams(max_volume_change=0.05))
+    assert m.is_watertight and m.euler_number == 2 and s.repair["handles"][0]["kind"] == "cut"
 
 
 def test_empty_mask_is_named_input_error():
@@ -169,7 +177,7 @@ def test_vessels_are_cut_at_their_length_from_the_valve(seed):
     surf = labels_to_surface(labels, affine, list(STRUCTURES),
                              MeshingParams(spacing_mm=2.0, sigma_mm=1.5, vessel_length_mm={"aorta": 30.0, "pa": 25.0}))
     mesh = trimesh.Trimesh(surf.verts, surf.faces, process=False)
-    assert mesh.is_watertight and mesh.euler_number == 2 and surf.closing_voxels == 0
+    assert mesh.is_watertight and mesh.euler_number == 2 and surf.repair == {}
 
 
 def test_trimming_removes_a_vessel_that_comes_back_to_a_chamber():
@@ -194,7 +202,7 @@ def test_trimming_removes_a_vessel_that_comes_back_to_a_chamber():
     assert euler_number(trimmed > 0, connectivity=3) == 1
     surf = labels_to_surface(labels, affine, ["lv", "la", "aorta"], MeshingParams(vessel_length_mm={"aorta": 30.0}))
     mesh = trimesh.Trimesh(surf.verts, surf.faces, process=False)
-    assert mesh.is_watertight and mesh.euler_number == 2 and surf.closing_voxels == 0
+    assert mesh.is_watertight and mesh.euler_number == 2 and surf.repair == {}
 
 
 def test_a_vessel_without_its_valve_is_named():

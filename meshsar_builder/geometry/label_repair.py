@@ -1,0 +1,216 @@
+"""Topology repair of multi-label heart maps by anatomy, before their union is meshed.
+
+DESIGN section 6. Real label maps are not genus 0: structures touch where anatomy does not join
+them (great vessels against each other and the atria), joined structures are kept apart by an
+unlabelled wall (a valve plane) except in patches, and single labels have holes and islands.
+Each of those makes a handle in the union's surface. The repair, in order:
+
+1. `clean_labels`: each label's enclosed holes are filled and its small islands dropped (an
+   island enclosed by other labels takes their label, so the union does not change).
+2. `fill_junction_walls`: between structures that anatomy joins (`JUNCTIONS`), the unlabelled
+   voxels within `wall_mm` of both become the nearer one: the joined pools meet over one patch.
+3. `separate_contacts`: where structures touch (or come within the gap) without a junction,
+   the one lower in `KEEP_ORDER` gives up its voxels within `gap_mm` of the other, so a gap wide
+   enough to survive the meshing's smoothing separates them along the contact only.
+
+Whatever handle is left is cut or filled on the meshing grid (`correct_handles`), whichever
+changes fewer voxels. Every step returns what it changed, for the sidecar.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from meshsar_builder.geometry.digital_topology import ball_core, filled_solid
+from meshsar_builder.geometry.structures import STRUCTURES
+
+# Pairs of structures that anatomy joins: their contact is kept and the unlabelled wall between
+# them filled. Valve planes (mitral, aortic, tricuspid, pulmonary), the septa, the myocardium
+# where it meets the atria and the aortic root, and LV-RV blood touching through a gap in the
+# septum's label. Any other contact (vessel-vessel, vessel-atrium, LV-RA, RV-LA, ...) is cut.
+JUNCTIONS: frozenset[frozenset[str]] = frozenset(frozenset(pair) for pair in (
+    ("lv", "myo"),  # the LV wall
+    ("lv", "la"),  # mitral valve
+    ("lv", "aorta"),  # aortic valve
+    ("myo", "aorta"),  # aortic root in the LV outflow
+    ("rv", "ra"),  # tricuspid valve
+    ("rv", "pa"),  # pulmonary valve
+    ("myo", "rv"),  # interventricular septum
+    ("lv", "rv"),  # blood pools meeting through an unlabelled piece of the septum
+    ("la", "ra"),  # interatrial septum
+    ("myo", "la"),  # LV base against the LA
+    ("myo", "ra"),  # LV base against the RA
+))
+
+# Where two structures touch without a junction, the later one in this order gives up the
+# voxels of the gap: vessels before atria before ventricles, so chambers keep their volume.
+KEEP_ORDER: tuple[str, ...] = ("lv", "myo", "rv", "la", "ra", "aorta", "pa")
+# Structures whose volume the repair must keep within the bound; vessels are only reported
+# (their length in a label map depends on the field of view and the annotator anyway).
+CHAMBERS: tuple[str, ...] = ("lv", "myo", "rv", "la", "ra")
+
+_NAMES = {v: k for k, v in STRUCTURES.items()}
+
+
+def _distance_to(mask: np.ndarray, voxel_mm: np.ndarray) -> np.ndarray:
+    """Distance (mm) from each voxel to the nearest voxel of `mask` (inf where it is empty)."""
+    if not mask.any():
+        return np.full(mask.shape, np.inf)
+    return ndimage.distance_transform_edt(~mask, sampling=voxel_mm)
+
+
+def _present(labels: np.ndarray) -> list[str]:
+    ids = np.flatnonzero(np.bincount(labels.ravel(), minlength=max(STRUCTURES.values()) + 1))
+    return [_NAMES[i] for i in ids if i in _NAMES]
+
+
+def clean_labels(labels: np.ndarray, voxel_mm: np.ndarray, island_fraction: float) -> tuple[np.ndarray, dict]:
+    """Fill each label's enclosed holes and drop its islands smaller than `island_fraction` of it.
+
+    labels : (X, Y, Z) uint8 canonical ids, voxel_mm : (3,). Returns the cleaned labels and
+    {structure: {"holes_filled", "islands_dropped", "island_voxels"}} for structures changed.
+    A hole is background enclosed by the label alone; an island is a 26-connected component.
+    A dropped island enclosed by other labels takes the label that surrounds it most, else it
+    becomes background.
+    """
+    out = labels.copy()
+    record = {}
+    full = np.ones((3, 3, 3), bool)
+    for name in _present(labels):
+        sid = STRUCTURES[name]
+        mask = out == sid
+        holes = ndimage.binary_fill_holes(mask) & (out == 0)
+        out[holes] = sid
+        comp, n = ndimage.label(out == sid, structure=full)
+        sizes = np.bincount(comp.ravel())[1:]
+        small = np.flatnonzero(sizes < island_fraction * sizes.sum()) + 1
+        dropped = 0
+        for c in small:
+            if sizes[c - 1] == sizes.max():
+                continue
+            island = comp == c
+            ring = ndimage.binary_dilation(island, structure=full) & ~island
+            around = np.bincount(out[ring], minlength=max(STRUCTURES.values()) + 1)
+            around[sid] = 0
+            # enclosed: no background voxel on its border
+            out[island] = around.argmax() if around[0] == 0 else 0
+            dropped += int(sizes[c - 1])
+        if holes.any() or dropped:
+            record[name] = {"holes_filled": int(holes.sum()), "islands_dropped": int(sum(sizes[c - 1] != sizes.max() for c in small)),
+                            "island_voxels": dropped}
+    return out, record
+
+
+def fill_junction_walls(labels: np.ndarray, voxel_mm: np.ndarray, wall_mm: float) -> tuple[np.ndarray, list[dict], np.ndarray]:
+    """Fill the unlabelled wall between structures that anatomy joins, where both are near.
+
+    labels : (X, Y, Z) uint8, voxel_mm : (3,), wall_mm : a background voxel within this distance
+    of both structures of a junction takes the nearer one's label. Returns the labels, one
+    {"structures", "voxels"} per junction filled, and the (X, Y, Z) bool mask of the wall voxels
+    filled (wall tissue, not chamber volume: the volume bounds leave it out).
+    """
+    out = labels.copy()
+    present = _present(labels)
+    dist = {name: _distance_to(labels == STRUCTURES[name], voxel_mm) for name in present}
+    record = []
+    walls = np.zeros(labels.shape, bool)
+    for pair in sorted(sorted(p) for p in JUNCTIONS):
+        a, b = pair
+        if a not in dist or b not in dist:
+            continue
+        wall = (out == 0) & (dist[a] <= wall_mm) & (dist[b] <= wall_mm)
+        if wall.any():
+            out[wall] = np.where(dist[a][wall] <= dist[b][wall], STRUCTURES[a], STRUCTURES[b])
+            walls |= wall
+            record.append({"structures": [a, b], "voxels": int(wall.sum())})
+    return out, record, walls
+
+
+def separate_contacts(labels: np.ndarray, voxel_mm: np.ndarray, gap_mm: float) -> tuple[np.ndarray, list[dict], np.ndarray]:
+    """Open a gap where two structures touch, or come within `gap_mm`, without a junction.
+
+    labels : (X, Y, Z) uint8, voxel_mm : (3,). The structure later in KEEP_ORDER loses its voxels
+    within gap_mm of the other. Returns the labels, one {"structures", "voxels", "position_mm"
+    (voxel index centroid; the caller maps it to mm)} per contact cut, and the (X, Y, Z) bool
+    mask of the voxels removed (the new gap walls lie along it).
+    """
+    out = labels.copy()
+    present = [n for n in KEEP_ORDER if n in _present(labels)]
+    removed = np.zeros(labels.shape, bool)
+    record = []
+    for i, keep in enumerate(present):
+        near = _distance_to(out == STRUCTURES[keep], voxel_mm) <= gap_mm
+        for give in present[i + 1:]:
+            if frozenset((keep, give)) in JUNCTIONS:
+                continue
+            cut = near & (out == STRUCTURES[give])
+            if cut.any():
+                out[cut] = 0
+                removed |= cut
+                record.append({"structures": [keep, give], "voxels": int(cut.sum()),
+                               "position_index": np.argwhere(cut).mean(axis=0).tolist()})
+    return out, record, removed
+
+
+def genus(solid: np.ndarray, six: bool) -> tuple[int, int, int]:
+    """(handles, components, cavities) of a voxel solid with adjacency 6 (complement 26) or 26.
+
+    solid : (X, Y, Z) bool. From the Euler characteristic χ = components − handles + cavities.
+    """
+    from skimage.measure import euler_number
+
+    fg = ndimage.generate_binary_structure(3, 1 if six else 3)
+    bg = ndimage.generate_binary_structure(3, 3 if six else 1)
+    components = ndimage.label(solid, structure=fg)[1]
+    cavities = ndimage.label(np.pad(~solid, 1, constant_values=True), structure=bg)[1] - 1
+    chi = euler_number(solid, connectivity=1 if six else 3)
+    return components + cavities - chi, components, cavities
+
+
+def correct_handles(solid: np.ndarray, depth: np.ndarray, six: bool = True, max_passes: int = 4) -> tuple[np.ndarray, list[dict]]:
+    """Cut or fill each handle of a solid, whichever changes fewer voxels.
+
+    solid : (X, Y, Z) bool, one component without cavities; depth : (X, Y, Z) float, larger =
+    deeper inside (minus the signed distance); six : the solid's adjacency (see `genus`).
+    Returns the solid without handles, or with those no cut or fill removed, and one
+    {"kind": "cut" | "fill", "voxels", "index" (centroid, voxel units)} per change.
+
+    The candidates are the connected pieces of the two topology-preserving growths
+    (`ball_core`: cuts through each handle at its thinnest; `filled_solid`: a patch across each
+    tunnel at its narrowest), each thickened by one voxel. Cheapest first, a candidate is kept
+    only when it removes a handle and leaves one component without cavities.
+    """
+    full = np.ones((3, 3, 3), bool)
+    solid = solid.copy()
+    handles, _, _ = genus(solid, six)
+    changes: list[dict] = []
+    for _ in range(max_passes):
+        if handles == 0:
+            break
+        cuts = solid & ~ball_core(solid, depth, six)
+        fills = filled_solid(solid, depth, six) & ~solid
+        progress = False
+        for kind, piece in sorted(_pieces(cuts, fills), key=lambda c: c[1].sum()):
+            # One voxel thicker on its own side, so the change holds under either adjacency:
+            # marching cubes may join voxels across a one-voxel cut diagonally.
+            piece = ndimage.binary_dilation(piece, structure=full) & (solid if kind == "cut" else ~solid)
+            trial = solid & ~piece if kind == "cut" else solid | piece
+            h, comps, cav = genus(trial, six)
+            if h < handles and comps == 1 and cav == 0:
+                solid, handles, progress = trial, h, True
+                changes.append({"kind": kind, "voxels": int(piece.sum()), "index": np.argwhere(piece).mean(axis=0).tolist()})
+                if handles == 0:
+                    break
+        if not progress:
+            break
+    return solid, changes
+
+
+def _pieces(cuts: np.ndarray, fills: np.ndarray):
+    """(kind, (X, Y, Z) bool) for each 26-connected piece of the cuts and of the fills."""
+    full = np.ones((3, 3, 3), bool)
+    for kind, mask in (("cut", cuts), ("fill", fills)):
+        comp, n = ndimage.label(mask, structure=full)
+        for c in range(1, n + 1):
+            yield kind, comp == c
