@@ -197,6 +197,8 @@ def labels_to_surface(
         # Already genus 0: no repair, so a surface that needs none is never changed by one.
         return Surface(*plain, nearest_labels(plain[0], chosen, chosen > 0, affine), {})
     record: dict = {"euler_before": int(trimesh.Trimesh(*plain, process=False).euler_number)}
+    # The repair's distance maps need only the heart and a margin, not a CT's whole field of view.
+    chosen, affine = _crop(chosen, affine, params.gap_mm + params.wall_mm)
     repaired, steps, gaps, walls = repair_labels(chosen, np.linalg.norm(affine[:3, :3], axis=0), params)
     for contact in steps["contacts_cut"]:
         world = np.asarray(contact.pop("position_index")) @ affine[:3, :3].T + affine[:3, 3]
@@ -220,6 +222,17 @@ def labels_to_surface(
     record.update(_repair_figures(chosen, np.where(walls, 0, repaired), handles, gaps, verts, faces, plain, affine, params))
     _check_repair(record, name, params)
     return Surface(verts, faces, nearest_labels(verts, repaired, repaired > 0, affine), record)
+
+
+def _crop(labels: np.ndarray, affine: np.ndarray, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The box of the non-zero labels plus margin_mm (two voxels at least), and its affine."""
+    voxel_mm = np.linalg.norm(affine[:3, :3], axis=0)
+    pad = np.ceil(margin_mm / voxel_mm).astype(int) + 2
+    nz = np.argwhere(labels)
+    lo, hi = np.maximum(nz.min(axis=0) - pad, 0), np.minimum(nz.max(axis=0) + pad + 1, labels.shape)
+    shifted = np.array(affine, float)
+    shifted[:3, 3] = affine[:3, :3] @ lo + affine[:3, 3]
+    return labels[tuple(slice(a, b) for a, b in zip(lo, hi))], shifted
 
 
 def repair_labels(labels: np.ndarray, voxel_mm: np.ndarray,
