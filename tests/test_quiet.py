@@ -44,17 +44,6 @@ class Caught:
 # caller is compared by file so that an edit elsewhere in that file does not hide or reveal it.
 EXPLAINED: dict[tuple[str, str, str], str] = {}
 
-# Warnings known and not fixed yet, keyed as EXPLAINED: a test that meets only these is marked xfail
-# (naming them) instead of failing, so it still fails on any other warning. Once the fix lands, delete
-# the entry: the tests are then strict.
-KNOWN_UNFIXED: dict[tuple[str, str, str], str] = {
-    ("RuntimeWarning", "invalid value encountered in divide", "meshsar_builder/geometry/meshing.py"): (
-        "mask_surface ranks the parts of the marching-cubes surface by abs(part.volume); the zero-area faces "
-        "that split() returns as parts of their own have volume 0 and trimesh's mass_properties divides by it "
-        "(trimesh/triangles.py). Fix in meshing.py, then delete this entry"),
-}
-
-
 @contextlib.contextmanager
 def caught_warnings():
     """Record every warning raised in the block (each occurrence, not once per place) as Caught."""
@@ -78,11 +67,8 @@ def _matches(c: Caught, table) -> bool:
 
 
 def unexplained(caught: list[Caught]) -> list[str]:
-    """Each distinct warning not in EXPLAINED; if all of them are KNOWN_UNFIXED, the test is marked xfail."""
-    left = sorted({str(c) for c in caught if not _matches(c, EXPLAINED)})
-    if left and all(_matches(c, KNOWN_UNFIXED) for c in caught if not _matches(c, EXPLAINED)):
-        pytest.xfail("only known, unfixed warnings: " + "; ".join(left))
-    return left
+    """Each distinct warning not in EXPLAINED."""
+    return sorted({str(c) for c in caught if not _matches(c, EXPLAINED)})
 
 
 def test_the_recorder_names_the_project_line_behind_a_library_warning():
@@ -95,15 +81,12 @@ def test_the_recorder_names_the_project_line_behind_a_library_warning():
     assert unexplained(caught) == [str(caught[0])]
 
 
-def test_a_known_unfixed_warning_marks_the_test_xfail_and_any_other_fails():
-    known = Caught("RuntimeWarning", "invalid value encountered in divide", "trimesh/triangles.py:302",
-                   "meshsar_builder/geometry/meshing.py:108")
+def test_an_explained_warning_passes_and_any_other_fails(monkeypatch):
+    expected = Caught("RuntimeWarning", "overflow", "numpy/x.py:1", "meshsar_builder/radar/echo.py:10")
     other = Caught("UserWarning", "something new", "x.py:1", "stages/radar.py:5")
-    assert unexplained([other]) == [str(other)]
-    assert unexplained([known, other]) == sorted([str(known), str(other)])
-    if KNOWN_UNFIXED:
-        with pytest.raises(pytest.xfail.Exception, match="only known, unfixed warnings"):
-            unexplained([known])
+    monkeypatch.setitem(EXPLAINED, ("RuntimeWarning", "overflow", "meshsar_builder/radar/echo.py"), "why")
+    assert unexplained([expected]) == []
+    assert unexplained([expected, other]) == [str(other)]
 
 
 # The beating biventricular phantom meshed as `make dataset` (manifests/demo.toml) meshes it: 1 mm.
