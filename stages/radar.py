@@ -7,7 +7,9 @@ moved to its heart-centred frame (minus the centre of its bounding box) and
 scanned from every view of `[radar]`.
 
 Outputs: `radar/<sample>.npz` with `sar` (V, C, H, W) float16, `echo`
-(V, Ex, Ey, Ef) complex64 and `center_mm` (3,) float32; the sidecar holds the
+(V, Ex, Ey, Ef) complex64, `echo_clean` (V, Lx, Ly, Lf) complex64 (the noise-free echo on
+the loss grid), `noise_seed` (V,) uint64, `noise_sigma` (V,) float64 and `center_mm`
+(3,) float32; the sidecar holds the
 sample's metadata and per-view figures (visible facets, powers, raw SNR, image
 noise floor, seconds).
 """
@@ -90,11 +92,13 @@ def run(ctx: Context, item: Item) -> dict:
     rng = item_rng(ctx.recipe.seed, NAME, item.id)
     out = render_sample(verts - center, faces, ctx.recipe.radar, ctx.recipe.images, rng)
     with atomic_path(ctx.stage_dir(NAME) / f"{item.id}.npz") as tmp:
-        np.savez(tmp, sar=out["sar"], echo=out["echo"], center_mm=center.astype(np.float32))
+        np.savez(tmp, sar=out["sar"], echo=out["echo"], echo_clean=out["echo_clean"], noise_seed=out["noise_seed"],
+                 noise_sigma=out["noise_sigma"], center_mm=center.astype(np.float32))
     # The image noise floor per view travels with the sample (shards' meta, the card).
     meta = {**item.data, "noise_floor_db": [v["noise_floor_db"] for v in out["views"]]}
     return {"meta": meta, "center_mm": center.tolist(), "views": out["views"], "device": ctx.recipe.radar.device}
 
 
 # Version 2: the physical-optics facet echo and the image-domain noise floor (image_snr_db).
-STAGE = Stage(name=NAME, version=2, plan=plan, run=run, resources=resources, check=check)
+# Version 3: echo_clean on the loss grid, and noise drawn from a stored uint64 seed per view.
+STAGE = Stage(name=NAME, version=3, plan=plan, run=run, resources=resources, check=check)

@@ -100,10 +100,12 @@ def test_decimation_keeps_a_centred_grid():
 def test_index_metadata_is_plain_json_with_the_contract_keys():
     meta = RP.index_metadata(RP.RadarParams(snr_db=math.inf), ImageParams())
     text = json.dumps(meta, allow_nan=False)
-    assert set(json.loads(text)) >= {"views", "fov_mm", "image_size", "channels", "radar", "echo_grid"}
+    assert set(json.loads(text)) >= {"views", "fov_mm", "image_size", "channels", "radar", "echo_grid", "loss_grid"}
     assert set(meta["radar"]) == {"f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
                                   "z0_mm", "snr_db", "image_snr_db", "rvp", "p", "kappa", "facet",
-                                  "reflectivity", "probes"}
+                                  "reflectivity", "probes", "echo_decimation", "loss_decimation"}
+    assert meta["radar"]["loss_decimation"] == [1, 1, 4] and meta["radar"]["echo_decimation"] == [5, 5, 2]
+    assert len(meta["loss_grid"]["positions_mm"]["left"]) == 80 * 80 and len(meta["loss_grid"]["frequencies_hz"]) == 16
     assert meta["radar"]["snr_db"] is None and meta["radar"]["image_snr_db"] is None
     assert [v["name"] for v in meta["views"]] == ["anterior", "left", "superior"]
     assert len(meta["echo_grid"]["positions_mm"]["left"]) == 16 * 16

@@ -2,8 +2,9 @@
 
 Imports `pipeline` only; torch only in `differentiable` and `gpu`. Modules: `params`
 (RadarParams, view frames, aperture, echo grid), `visibility` (facet geometry, Embree),
-`echo` (direct reference and fast production sums, noise), `imaging` (range migration,
-view images), `render` (one sample, every view), `differentiable` (torch echo for the
-radar loss), `gpu` (a view's echo and imaging on a torch device, for device = "cuda";
-imported only then).
+`echo` (direct reference and fast production sums), `noise` (the recorded noise from a
+seed per view, for the build and for readers), `imaging` (range migration, view images),
+`render` (one sample, every view), `ghosts` (the ghost level of a decimated echo grid,
+which chose the loss grid), `differentiable` (torch echo for the radar loss), `gpu` (a
+view's echo and imaging on a torch device, for device = "cuda"; imported only then).
 """

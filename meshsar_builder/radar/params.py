@@ -38,6 +38,14 @@ PROBES = ("corners", "centre")
 # within 18 dB of the peak detected for the depth channel (DETECTION_MARGIN_DB).
 DEFAULT_IMAGE_SNR_DB = 30.0
 ECHO_METHODS = ("chebyshev", "direct")
+# The radar loss's stored target, echo_clean, is the noise-free echo on this decimation
+# (ax, ay, af) of the full grid (issue 28, DESIGN section 7). Chosen by measurement
+# (radar.ghosts, point targets at the field of view's edges and corners, +-60 mm deep):
+# every 4th frequency of the full 2 mm aperture (80 x 80 x 16 at the defaults) adds
+# ghosts at most -52 dB below the peak; every 8th -38 dB; every 16th -10 dB (range
+# aliases 150 mm apart); any 4 mm aperture (2, 2, *) 0 dB: an edge target's grating lobe
+# (about lambda R / 2d = 139 mm away) is as strong as the target. The limit is -25 dB.
+DEFAULT_LOSS_DECIMATION = (1, 1, 4)
 # Where the echo and imaging of a view run: "cpu" (the numba echo and numpy imaging, the
 # default, whose bytes the demo shards pin) or a CUDA device through torch (radar/gpu.py).
 DEVICE_RE = re.compile(r"^(cpu|cuda|cuda:[0-9]+)$")
@@ -90,6 +98,7 @@ class RadarParams:
     reflectivity: str = "lobe"
     probes: str = "corners"
     echo_decimation: tuple[int, ...] = (5, 5, 2)
+    loss_decimation: tuple[int, ...] = DEFAULT_LOSS_DECIMATION
     echo_method: str = "chebyshev"
     device: str = "cpu"
 
@@ -116,10 +125,11 @@ class RadarParams:
         if isinstance(self.n_samples, bool) or not isinstance(self.n_samples, int) or self.n_samples < 2:
             raise invalid("n_samples", "must be an integer >= 2", self.n_samples)
         aperture = _int_tuple(self, "aperture", 2, 2)
-        decimation = _int_tuple(self, "echo_decimation", 3, 1)
-        for axis, (size, factor) in enumerate(zip((*aperture, self.n_samples), decimation)):
-            if factor > size:
-                raise invalid("echo_decimation", f"entry {axis} exceeds the grid size {size}", decimation)
+        for key in ("echo_decimation", "loss_decimation"):
+            decimation = _int_tuple(self, key, 3, 1)
+            for axis, (size, factor) in enumerate(zip((*aperture, self.n_samples), decimation)):
+                if factor > size:
+                    raise invalid(key, f"entry {axis} exceeds the grid size {size}", decimation)
         views = tuple(self.views)
         if not views or len(set(views)) != len(views):
             raise invalid("views", "must be a non-empty list without repeats", views)
@@ -194,29 +204,45 @@ def decimation_indices(size: int, factor: int) -> np.ndarray:
     return start + factor * np.arange(count)
 
 
-def echo_grid(radar: RadarParams) -> dict:
-    """The decimated echo's grid: `frequencies_hz` (Ef,) and per view `positions_mm` (Ex * Ey, 3)."""
-    (nx, ny), (dx, dy, df) = radar.aperture, radar.echo_decimation
-    ix, iy = decimation_indices(nx, dx), decimation_indices(ny, dy)
-    freqs = frequencies(radar)[decimation_indices(radar.n_samples, df)]
+def grid_indices(radar: RadarParams, decimation: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices (x, y, frequency) into the full (Nx, Ny, N) grid kept by decimation (ax, ay, af)."""
+    sizes = (*radar.aperture, radar.n_samples)
+    return tuple(decimation_indices(size, factor) for size, factor in zip(sizes, decimation))
+
+
+def _sub_grid(radar: RadarParams, decimation: tuple[int, ...]) -> dict:
+    (nx, ny), (ix, iy, i_f) = radar.aperture, grid_indices(radar, decimation)
     positions = {
         view: aperture_positions(radar, view).reshape(nx, ny, 3)[np.ix_(ix, iy)].reshape(-1, 3)
         for view in radar.views
     }
-    return {"frequencies_hz": freqs, "positions_mm": positions}
+    return {"frequencies_hz": frequencies(radar)[i_f], "positions_mm": positions}
+
+
+def echo_grid(radar: RadarParams) -> dict:
+    """The decimated echo's grid: `frequencies_hz` (Ef,) and per view `positions_mm` (Ex * Ey, 3)."""
+    return _sub_grid(radar, radar.echo_decimation)
+
+
+def loss_grid(radar: RadarParams) -> dict:
+    """The grid of echo_clean (the radar loss's target), laid out like echo_grid: (Lf,) and (Lx * Ly, 3) per view."""
+    return _sub_grid(radar, radar.loss_decimation)
 
 
 def index_metadata(radar: RadarParams, images: ImageParams) -> dict:
     """The index.json keys this module owns (DESIGN section 7), as plain JSON values.
 
-    `views`, `fov_mm`, `image_size`, `channels`, `radar`, `echo_grid`. The noise key not
-    in use, or an infinite one (no noise), is written as null, since JSON has no infinity.
+    `views`, `fov_mm`, `image_size`, `channels`, `radar`, `echo_grid`, `loss_grid`. The
+    noise key not in use, or an infinite one (no noise), is written as null, since JSON has
+    no infinity. `radar` carries both decimations: with `aperture` and `n_samples` they
+    place each grid in the full one, where the recorded noise is drawn (radar.noise).
     """
-    grid = echo_grid(radar)
     radar_keys = ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
-                  "z0_mm", "snr_db", "image_snr_db", "rvp", "p", "kappa", "facet", "reflectivity", "probes")
+                  "z0_mm", "snr_db", "image_snr_db", "rvp", "p", "kappa", "facet", "reflectivity", "probes",
+                  "echo_decimation", "loss_decimation")
     radar_dict = {key: getattr(radar, key) for key in radar_keys}
-    radar_dict["aperture"] = list(radar.aperture)
+    for key in ("aperture", "echo_decimation", "loss_decimation"):
+        radar_dict[key] = list(radar_dict[key])
     for key in ("snr_db", "image_snr_db"):
         radar_dict[key] = radar_dict[key] if radar_dict[key] is not None and math.isfinite(radar_dict[key]) else None
     return {
@@ -226,9 +252,12 @@ def index_metadata(radar: RadarParams, images: ImageParams) -> dict:
         ],
         **image_metadata(images),
         "radar": radar_dict,
-        "echo_grid": {
-            "frequencies_hz": grid["frequencies_hz"].tolist(),
-            "positions_mm": {view: pos.tolist() for view, pos in grid["positions_mm"].items()},
+        **{
+            key: {
+                "frequencies_hz": grid["frequencies_hz"].tolist(),
+                "positions_mm": {view: pos.tolist() for view, pos in grid["positions_mm"].items()},
+            }
+            for key, grid in (("echo_grid", echo_grid(radar)), ("loss_grid", loss_grid(radar)))
         },
     }
 

@@ -1,4 +1,4 @@
-"""One sample's radar data: per view visibility, echo, noise, SAR images and the decimated echo."""
+"""One sample's radar data: per view visibility, echo, noise, images, the decimated echo and the loss grid's echo."""
 
 from __future__ import annotations
 
@@ -9,20 +9,16 @@ import numpy as np
 
 from meshsar_builder.radar.echo import echo
 from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images
+from meshsar_builder.radar.noise import add_noise, draw_seeds, unit_noise
 from meshsar_builder.radar.params import (
     RadarParams,
     aperture_axes,
     aperture_positions,
-    decimation_indices,
     frequencies,
+    grid_indices,
     probe_points,
 )
 from meshsar_builder.radar.visibility import embree_intersector, facet_geometry, scatterer_points, visibility
-
-
-def unit_noise(shape: tuple, rng: np.random.Generator) -> np.ndarray:
-    """Complex white Gaussian noise of mean power 1, complex128 of `shape`."""
-    return rng.standard_normal((*shape, 2)) @ np.array([1.0, 1.0j]) / math.sqrt(2)
 
 
 def noise_scale(signal_power: float, signal_peak: float, noise_rms: float, radar: RadarParams) -> float:
@@ -55,17 +51,22 @@ def view_functions(device: str):
 
 def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, images: ImageParams,
                   rng: np.random.Generator) -> dict:
-    """SAR images and decimated echo of one mesh for every view of `radar`.
+    """SAR images, decimated echo and the loss grid's noise-free echo of one mesh for every view of `radar`.
 
     verts : (n, 3) float mm, heart frame; faces : (F, 3) int; rng : the sample's
     generator (seeding.item_rng(seed, "radar", sample_id)). Random scatterers are
-    drawn from rng first, then view i's noise comes from the i-th of
-    rng.spawn(len(views)), so each (sample, view) has its own noise stream.
+    drawn from rng first, then one uint64 noise seed per view (radar.noise.draw_seeds):
+    each (sample, view) has its own noise stream, radar.noise.unit_noise of its seed on
+    the full grid, which a reader regenerates from the seed alone.
 
     The noise is drawn with unit power and imaged on its own (imaging is linear), so
     each view knows its image-domain noise floor and can scale the noise to
     radar.image_snr_db. Returns `sar` (V, C, H, W) float16, `echo` (V, Ex, Ey, Ef)
-    complex64 on the grid of echo_grid(radar), and `views`: per view a dict of `name`,
+    complex64 on the grid of echo_grid(radar), the recorded echo (radar.noise.add_noise
+    of the complex64 noise-free echo and sigma times the unit noise there), `echo_clean`
+    (V, Lx, Ly, Lf) complex64, the noise-free echo on loss_grid(radar) (a sub-sample of
+    the full echo computed for the images: no extra echo cost), `noise_seed` (V,) uint64,
+    `noise_sigma` (V,) float64 (0 without noise), and `views`: per view a dict of `name`,
     `visible_facets` (V_k > 0), `visible_area_mm2` (sum of V_k area_k), `signal_power`
     and `noise_power` (mean per raw sample), `raw_snr_db`, `noise_floor_db` (the image
     noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
@@ -79,17 +80,17 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     tri = verts[faces]
     areas = facet_geometry(verts, faces)[2]
     points = scatterer_points(verts, faces, radar.facet, rng)
-    noise_rngs = rng.spawn(len(radar.views))
+    seeds = draw_seeds(rng, len(radar.views))
     intersector = embree_intersector(verts, faces)
     freqs = frequencies(radar)
     x_mm, y_mm = aperture_axes(radar)
-    keep_x, keep_y, keep_f = (decimation_indices(size, factor) for size, factor
-                              in zip((*radar.aperture, radar.n_samples), radar.echo_decimation))
+    keep = np.ix_(*grid_indices(radar, radar.echo_decimation))
+    keep_loss = np.ix_(*grid_indices(radar, radar.loss_decimation))
     shape = (*radar.aperture, radar.n_samples)
     noisy = radar.snr_db != math.inf and radar.image_snr_db != math.inf
     view_echo, volume_of = view_functions(radar.device)
-    sar, decimated, stats = [], [], []
-    for view, noise_rng in zip(radar.views, noise_rngs):
+    sar, decimated, clean, sigmas, stats = [], [], [], [], []
+    for view, seed in zip(radar.views, seeds):
         t0 = time.perf_counter()
         vis, rays = visibility(verts, faces, probe_points(radar, view), intersector)
         t1 = time.perf_counter()
@@ -97,7 +98,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         signal = view_echo(tri[seen], vis[seen], aperture_positions(radar, view), freqs, radar, points=points[seen])
         signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
-        noise = unit_noise(shape, noise_rng) if noisy else None
+        noise = unit_noise(shape, seed) if noisy else None
         t2 = time.perf_counter()
         volume = volume_of(signal, freqs, x_mm, y_mm, radar.z0_mm, images)
         peak = float(np.abs(volume).max())
@@ -108,12 +109,13 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
             sigma = noise_scale(signal_power, peak, noise_rms, radar)
             if sigma > 0:
                 volume = volume + np.complex64(sigma) * noise_volume
-                signal = signal + sigma * noise
                 image_noise = sigma * noise_rms
                 floor_db = 20 * math.log10(peak / image_noise) if peak > 0 else None
         sar.append(volume_images(volume, freqs, radar.z0_mm, images, image_noise))
         t3 = time.perf_counter()
-        decimated.append(signal[np.ix_(keep_x, keep_y, keep_f)])
+        decimated.append(add_noise(signal[keep].astype(np.complex64), sigma, None if noise is None else noise[keep]))
+        clean.append(signal[keep_loss].astype(np.complex64))
+        sigmas.append(sigma)
         noise_power = sigma**2
         stats.append({
             "name": view, "visible_facets": int(seen.sum()), "visible_area_mm2": float(vis @ areas),
@@ -125,5 +127,8 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     return {
         "sar": np.stack(sar).astype(np.float16),
         "echo": np.stack(decimated).astype(np.complex64),
+        "echo_clean": np.stack(clean),
+        "noise_seed": seeds,
+        "noise_sigma": np.array(sigmas, dtype=np.float64),
         "views": stats,
     }
