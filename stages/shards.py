@@ -50,12 +50,14 @@ def run(ctx: Context, item: Item) -> dict:
         verts, faces, labels = read_ply(mesh_path)
         with np.load(npz_path, allow_pickle=False) as z:
             sar, echo, center = z["sar"], z["echo"], z["center_mm"]
+            clean, seed, sigma = z["echo_clean"], z["noise_seed"], z["noise_sigma"]
         samples.append(Sample(
             sample_id=entry["id"],
             verts=verts - center.astype(np.float64),
             faces=faces,
             vert_labels=labels if labels is not None else np.zeros(len(verts), np.uint8),
-            sar=sar, echo=echo, center_mm=center, meta=entry["meta"],
+            sar=sar, echo=echo, echo_clean=clean, noise_seed=seed, noise_sigma=sigma, center_mm=center,
+            meta=entry["meta"],
         ))
     write_shard(ctx.stage_dir(NAME) / f"{item.id}.npz", samples)
     return {"n": len(samples), "sample_ids": [s.sample_id for s in samples]}
@@ -90,4 +92,5 @@ def finish(ctx: Context, results: Results) -> dict:
     return {"shards": len(shards), "samples": index["n_samples"], "split": str(path)}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run, finish=finish)
+# Version 2: format 2 (echo_clean, noise_seed, noise_sigma; loss_grid in the index).
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run, finish=finish)

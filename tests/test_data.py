@@ -16,7 +16,9 @@ from meshsar_builder.dataset.readers import MeshSARDataset, MeshSARIterable, col
 from meshsar_builder.dataset.splits import make_split, read_split, write_split
 from meshsar_builder.pipeline.errors import InputError
 
-from .test_shards import ECHO, C, H, V, W, tiny_dataset
+from meshsar_builder.dataset.shards import recorded_loss_echo
+
+from .test_shards import ECHO, LOSS, C, H, V, W, tiny_dataset
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +41,24 @@ def test_map_dataset_gives_exact_tensors(dataset):
         assert item["sar"].dtype == torch.float32 and item["sar"].shape == (V, C, H, W)
         assert torch.equal(item["sar"], torch.from_numpy(want.sar.astype(np.float32)))
         assert item["echo"].dtype == torch.complex64 and torch.equal(item["echo"], torch.from_numpy(want.echo))
+        assert item["echo_clean"].dtype == torch.complex64 and item["echo_clean"].shape == LOSS
+        assert torch.equal(item["echo_clean"], torch.from_numpy(want.echo_clean)) and "echo_noisy" not in item
+        assert item["noise_seed"].dtype == np.uint64 and np.array_equal(item["noise_seed"], want.noise_seed)
+        assert item["noise_sigma"].dtype == torch.float64 and item["noise_sigma"].tolist() == want.noise_sigma.tolist()
         assert torch.equal(item["center_mm"], torch.from_numpy(want.center_mm))
+
+
+def test_recorded_echo_on_the_loss_grid(dataset):
+    root, index, samples = dataset
+    for ds in (MeshSARDataset(root, split=None, noisy_loss_echo=True),
+               MeshSARIterable(root, split=None, shuffle=False, noisy_loss_echo=True)):
+        items = [ds[i] for i in range(len(ds))] if isinstance(ds, MeshSARDataset) else list(ds)
+        assert len(items) == len(samples)
+        for item in items:
+            want = recorded_loss_echo(samples[item["sample_id"]], index)
+            assert item["echo_noisy"].dtype == torch.complex64
+            assert torch.equal(item["echo_noisy"], torch.from_numpy(want))
+            assert not torch.equal(item["echo_noisy"], item["echo_clean"])  # the tiny dataset's sigmas are > 0
 
 
 def test_channels_and_whole_dataset(dataset):
@@ -70,7 +89,11 @@ def test_collate_ragged_batch(dataset):
     loader = DataLoader(MeshSARDataset(root, split="train"), batch_size=4, collate_fn=collate_meshes, num_workers=2)
     batch = next(iter(loader))
     assert batch["sar"].shape == (4, V, C, H, W) and batch["echo"].shape == (4, *ECHO)
-    assert batch["center_mm"].shape == (4, 3)
+    assert batch["echo_clean"].shape == (4, *LOSS) and "echo_noisy" not in batch
+    assert batch["noise_seed"].shape == (4, V) and batch["noise_seed"].dtype == np.uint64
+    assert batch["noise_sigma"].shape == (4, V) and batch["center_mm"].shape == (4, 3)
+    noisy = collate_meshes([MeshSARDataset(root, split="train", noisy_loss_echo=True)[i] for i in range(2)])
+    assert noisy["echo_noisy"].shape == (2, *LOSS) and noisy["echo_noisy"].dtype == torch.complex64
     assert len(batch["verts"]) == len(batch["faces"]) == len(batch["meta"]) == len(batch["sample_id"]) == 4
     assert len({v.shape[0] for v in batch["verts"]}) > 1  # meshes of different sizes in one batch
 

@@ -71,7 +71,7 @@ def make_dataset(root: Path, n: int = 6, shard_size: int = 3, radii: tuple[float
     rng = np.random.default_rng(0)
     sphere = trimesh.creation.icosphere(2)
     dense = trimesh.creation.icosphere(5).vertices  # fills the silhouettes at 32 px
-    grid = RP.echo_grid(TINY_RADAR)
+    grid, loss = RP.echo_grid(TINY_RADAR), RP.loss_grid(TINY_RADAR)
     metadata = RP.index_metadata(TINY_RADAR, TINY_IMAGES)
     draws = [(rng.uniform(*radii, 3), rng.random((3, 2, 32, 32))) for _ in range(n)]  # (scale, noise) per sample
     scales = [scale for scale, _ in draws]
@@ -82,10 +82,14 @@ def make_dataset(root: Path, n: int = 6, shard_size: int = 3, radii: tuple[float
         echo = np.stack([echo_torch(torch.from_numpy(verts), torch.from_numpy(sphere.faces), grid["positions_mm"][v],
                                     grid["frequencies_hz"], TINY_RADAR).numpy().reshape(4, 4, 4)
                          for v in TINY_RADAR.views])
+        clean = np.stack([echo_torch(torch.from_numpy(verts), torch.from_numpy(sphere.faces), loss["positions_mm"][v],
+                                     loss["frequencies_hz"], TINY_RADAR).numpy().reshape(8, 8, 2)
+                          for v in TINY_RADAR.views]).astype(np.complex64)  # the noise-free echo on the loss grid
         sar = {"random": draws[i][1], "silhouette": outlines[i], "shuffled": outlines[(i + 1) % n]}[images]
         samples.append(Sample(
             sample_id=f"s{i}", verts=verts, faces=sphere.faces, vert_labels=np.zeros(len(verts), np.uint8),
-            sar=sar.astype(np.float16), echo=echo, center_mm=np.zeros(3, np.float32),
+            sar=sar.astype(np.float16), echo=echo, echo_clean=clean, noise_seed=np.arange(3, dtype=np.uint64),
+            noise_sigma=np.zeros(3), center_mm=np.zeros(3, np.float32),
             meta={"source": "toy", "subject": f"subj{i}", "subset": "direct"}))
     shards = []
     for k in range(0, n, shard_size):

@@ -6,7 +6,11 @@ Samples come as dicts:
     faces       (m, 3) int64
     vert_labels (n,) int64, structure ids
     sar         (V, C, H, W) float32 (C = the channels asked for, in that order)
-    echo        (V, Ex, Ey, Ef) complex64
+    echo        (V, Ex, Ey, Ef) complex64, the recorded (noisy) echo on index echo_grid
+    echo_clean  (V, Lx, Ly, Lf) complex64, the noise-free echo on index loss_grid (the radar loss's target)
+    noise_seed  (V,) uint64 numpy array, noise_sigma (V,) float64: what regenerates the recorded noise
+    echo_noisy  (V, Lx, Ly, Lf) complex64, the recorded echo on the loss grid (echo_clean plus the
+                regenerated noise, bit for bit the build's): only with noisy_loss_echo=True
     center_mm   (3,) float32
     meta        dict
 Shards are memory-mapped (`meshsar_builder.shards.Shard`): a sample read touches
@@ -24,7 +28,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset, IterableDataset, get_worker_info
 
-from meshsar_builder.dataset.shards import Sample, Shard, read_index
+from meshsar_builder.dataset.shards import Sample, Shard, read_index, recorded_loss_echo
 from meshsar_builder.dataset.splits import read_split
 from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.seeding import item_rng
@@ -53,9 +57,14 @@ def channel_indices(index: dict, channels: list[str] | None) -> list[int] | None
     return [index["channels"].index(c) for c in channels]
 
 
-def to_tensors(sample: Sample, channels: list[int] | None = None) -> dict:
-    """A `Sample` as the dict of tensors described in the module docstring."""
+def to_tensors(sample: Sample, channels: list[int] | None = None, index: dict | None = None) -> dict:
+    """A `Sample` as the dict of tensors described in the module docstring.
+
+    index: the dataset's index.json, to add `echo_noisy` (the recorded echo on the loss grid);
+    None leaves it out (regenerating the noise costs ~10 ms a view at the default grid).
+    """
     sar = sample.sar if channels is None else sample.sar[:, channels]
+    extra = {} if index is None else {"echo_noisy": torch.from_numpy(recorded_loss_echo(sample, index))}
     return {
         "sample_id": sample.sample_id,
         "verts": torch.from_numpy(np.ascontiguousarray(sample.verts, dtype=np.float32)),
@@ -63,8 +72,12 @@ def to_tensors(sample: Sample, channels: list[int] | None = None) -> dict:
         "vert_labels": torch.from_numpy(sample.vert_labels.astype(np.int64)),
         "sar": torch.from_numpy(sar.astype(np.float32)),
         "echo": torch.from_numpy(np.ascontiguousarray(sample.echo, dtype=np.complex64)),
+        "echo_clean": torch.from_numpy(np.ascontiguousarray(sample.echo_clean, dtype=np.complex64)),
+        "noise_seed": np.array(sample.noise_seed, dtype=np.uint64),  # torch has no full uint64 support
+        "noise_sigma": torch.from_numpy(np.array(sample.noise_sigma, dtype=np.float64)),
         "center_mm": torch.from_numpy(np.ascontiguousarray(sample.center_mm, dtype=np.float32)),
         "meta": sample.meta,
+        **extra,
     }
 
 
@@ -96,13 +109,15 @@ class MeshSARDataset(Dataset):
     """Map-style dataset of one split (`split=None`: every sample), in dataset order.
 
     root : build folder with index.json and splits/; seed : which split file;
-    channels : sar channel names to keep (default all); cache_shards : shards kept open.
+    channels : sar channel names to keep (default all); cache_shards : shards kept open;
+    noisy_loss_echo : also give `echo_noisy`, the recorded echo on the loss grid.
     """
 
     def __init__(self, root: str | os.PathLike, split: str | None = "train", seed: int = 0,
-                 channels: list[str] | None = None, cache_shards: int = 4):
+                 channels: list[str] | None = None, cache_shards: int = 4, noisy_loss_echo: bool = False):
         self.root = Path(root)
         self.index = read_index(self.root)
+        self.noisy_loss_echo = noisy_loss_echo
         self.ids = split_ids(self.root, self.index, split, seed)
         self.channels = channel_indices(self.index, channels)
         files = [s["file"] for s in self.index["shards"]]
@@ -114,17 +129,22 @@ class MeshSARDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict:
         file, row = self._where[i]
-        return to_tensors(self._cache.get(file)[row], self.channels)
+        return to_tensors(self._cache.get(file)[row], self.channels, self.index if self.noisy_loss_echo else None)
 
 
 def collate_meshes(batch: list[dict]) -> dict:
     """Batch samples of different mesh sizes: lists for verts/faces/vert_labels/meta/sample_id,
-    stacked tensors for sar (B, V, C, H, W), echo (B, V, Ex, Ey, Ef) and center_mm (B, 3)."""
+    stacked tensors for sar (B, V, C, H, W), echo (B, V, Ex, Ey, Ef), echo_clean (and echo_noisy)
+    (B, V, Lx, Ly, Lf), noise_sigma (B, V) and center_mm (B, 3); noise_seed (B, V) uint64 numpy."""
     ragged = ("sample_id", "verts", "faces", "vert_labels", "meta")
-    return {
+    stacked = [k for k in ("sar", "echo", "echo_clean", "echo_noisy", "noise_sigma", "center_mm") if k in batch[0]]
+    out = {
         **{k: [b[k] for b in batch] for k in ragged},
-        **{k: torch.stack([b[k] for b in batch]) for k in ("sar", "echo", "center_mm")},
+        **{k: torch.stack([b[k] for b in batch]) for k in stacked},
     }
+    if "noise_seed" in batch[0]:
+        out["noise_seed"] = np.stack([b["noise_seed"] for b in batch])
+    return out
 
 
 def _distributed() -> tuple[int, int]:
@@ -141,16 +161,18 @@ class MeshSARIterable(IterableDataset):
     shards c, c + C, c + 2C, ... of the epoch's shard order, so across all consumers
     every sample of the split comes exactly once per epoch. shuffle=True permutes the
     shards and the samples within each by (seed, epoch) only, so every rank agrees;
-    call `set_epoch` between epochs. rank/world_size default to torch.distributed's.
+    call `set_epoch` between epochs. rank/world_size default to torch.distributed's;
+    noisy_loss_echo as for MeshSARDataset.
     Consumers get whole shards: with fewer shards than consumers some get none (a
     warning says so), and ranks may get different sample counts.
     """
 
     def __init__(self, root: str | os.PathLike, split: str | None = "train", seed: int = 0, shuffle: bool = True,
                  epoch: int = 0, channels: list[str] | None = None, rank: int | None = None,
-                 world_size: int | None = None):
+                 world_size: int | None = None, noisy_loss_echo: bool = False):
         self.root = Path(root)
         index = read_index(self.root)
+        self.index = index if noisy_loss_echo else None
         rows: dict[int, list[int]] = {}
         for sid in split_ids(self.root, index, split, seed):
             where = index["samples"][sid]
@@ -192,4 +214,4 @@ class MeshSARIterable(IterableDataset):
         for file, rows in self.assignment(consumer, consumers):
             shard = Shard(self.root / file)
             for row in rows:
-                yield to_tensors(shard[row], self.channels)
+                yield to_tensors(shard[row], self.channels, self.index)

@@ -10,11 +10,16 @@ offsets, and the fixed-size arrays stacked:
     face_offsets (n+1,)           int64
     vert_labels  (ΣV,)            uint8, structure ids (0 where unlabelled)
     sar          (n, V, C, H, W)  float16
-    echo         (n, V, Ex, Ey, Ef) complex64
+    echo         (n, V, Ex, Ey, Ef) complex64, the recorded echo (noise included) on index echo_grid
+    echo_clean   (n, V, Lx, Ly, Lf) complex64, the noise-free echo on index loss_grid (the radar loss's target)
+    noise_seed   (n, V)           uint64, each view's noise seed (radar.noise)
+    noise_sigma  (n, V)           float64, each view's noise amplitude (echo units; 0: no noise)
     center_mm    (n, 3)           float32, world position of the heart frame's origin
     meta         (n,)             str, one canonical JSON object each
 
-No object arrays: a shard loads with `np.load(path, allow_pickle=False)`.
+echo_clean with the seeds and sigmas regenerates the recorded echo on the loss grid bit
+for bit (recorded_loss_echo). No object arrays: a shard loads with
+`np.load(path, allow_pickle=False)`.
 Members are stored uncompressed, so `Shard` can memory-map them and read one
 sample without loading the rest.
 """
@@ -44,7 +49,10 @@ class ShardParams:
         if self.shard_size < 1:
             raise ValueError(f"shard_size: must be >= 1, got {self.shard_size}")
 
-FORMAT_VERSION = 1
+# Format 2 (issue 28): echo_clean, noise_seed and noise_sigma in every shard, loss_grid in the index.
+FORMAT_VERSION = 2
+# Arrays a format-2 shard has that a format-1 shard lacks: their absence names the old format.
+ADDED_IN_FORMAT_2 = ("echo_clean", "noise_seed", "noise_sigma")
 INDEX_NAME = "index.json"
 SHARD_DIR = "shards"
 
@@ -57,13 +65,16 @@ DTYPES = {
     "vert_labels": np.dtype(np.uint8),
     "sar": np.dtype(np.float16),
     "echo": np.dtype(np.complex64),
+    "echo_clean": np.dtype(np.complex64),
+    "noise_seed": np.dtype(np.uint64),
+    "noise_sigma": np.dtype(np.float64),
     "center_mm": np.dtype(np.float32),
     "meta": np.dtype("U"),
 }
 SHARD_KEYS = tuple(DTYPES)
 # Index keys of DESIGN section 7 (more are added: samples, n_samples, shard_size).
 INDEX_KEYS = ("format_version", "recipe", "recipe_sha256", "code_version", "views", "fov_mm", "image_size",
-              "channels", "radar", "echo_grid", "shards", "counts")
+              "channels", "radar", "echo_grid", "loss_grid", "shards", "counts")
 
 
 @dataclass
@@ -71,8 +82,10 @@ class Sample:
     """One dataset sample.
 
     verts (n, 3) float32 mm in the heart frame; faces (m, 3) int indices into verts;
-    vert_labels (n,) uint8; sar (V, C, H, W) float16; echo (V, Ex, Ey, Ef) complex64;
-    center_mm (3,) float32 (world = verts + center_mm); meta: JSON-able dict.
+    vert_labels (n,) uint8; sar (V, C, H, W) float16; echo (V, Ex, Ey, Ef) complex64, the
+    recorded echo; echo_clean (V, Lx, Ly, Lf) complex64, the noise-free echo on the loss
+    grid; noise_seed (V,) uint64 and noise_sigma (V,) float64 (radar.noise); center_mm (3,)
+    float32 (world = verts + center_mm); meta: JSON-able dict.
     """
 
     sample_id: str
@@ -81,6 +94,9 @@ class Sample:
     vert_labels: np.ndarray
     sar: np.ndarray
     echo: np.ndarray
+    echo_clean: np.ndarray
+    noise_seed: np.ndarray
+    noise_sigma: np.ndarray
     center_mm: np.ndarray
     meta: dict
 
@@ -109,6 +125,16 @@ def pack(samples: list[Sample]) -> dict[str, np.ndarray]:
                              f"{first.sample_id}'s {np.shape(first.sar)} / {np.shape(first.echo)}")
         if np.ndim(s.sar) != 4 or np.ndim(s.echo) != 4 or np.shape(s.center_mm) != (3,):
             raise ValueError(f"{s.sample_id}: need sar (V, C, H, W), echo (V, Ex, Ey, Ef), center_mm (3,)")
+        views = np.shape(s.sar)[0]
+        if (np.ndim(s.echo_clean) != 4 or np.shape(s.echo_clean)[0] != views or np.shape(s.echo)[0] != views
+                or np.shape(s.noise_seed) != (views,) or np.shape(s.noise_sigma) != (views,)):
+            raise ValueError(f"{s.sample_id}: need echo (V, Ex, Ey, Ef), echo_clean (V, Lx, Ly, Lf), noise_seed (V,) "
+                             f"and noise_sigma (V,) with V = {views} views as in sar")
+        if np.shape(s.echo_clean) != np.shape(first.echo_clean):
+            raise ValueError(f"{s.sample_id}: echo_clean {np.shape(s.echo_clean)} differs from "
+                             f"{first.sample_id}'s {np.shape(first.echo_clean)}")
+        if np.asarray(s.noise_seed).dtype != np.uint64:
+            raise ValueError(f"{s.sample_id}: noise_seed must be uint64, got {np.asarray(s.noise_seed).dtype}")
 
     metas = []
     for s in samples:
@@ -129,6 +155,9 @@ def pack(samples: list[Sample]) -> dict[str, np.ndarray]:
         "vert_labels": np.concatenate([np.asarray(s.vert_labels, np.uint8) for s in samples]),
         "sar": np.stack([np.asarray(s.sar, np.float16) for s in samples]),
         "echo": np.stack([np.asarray(s.echo, np.complex64) for s in samples]),
+        "echo_clean": np.stack([np.asarray(s.echo_clean, np.complex64) for s in samples]),
+        "noise_seed": np.stack([np.asarray(s.noise_seed, np.uint64) for s in samples]),
+        "noise_sigma": np.stack([np.asarray(s.noise_sigma, np.float64) for s in samples]),
         "center_mm": np.stack([np.asarray(s.center_mm, np.float32) for s in samples]),
         "meta": np.array(metas, dtype=str),
     }
@@ -160,9 +189,13 @@ def structure_problems(arrays: dict[str, np.ndarray]) -> list[str]:
     for key, shape in expected.items():
         if arrays[key].shape != shape:
             problems.append(f"'{key}' has shape {arrays[key].shape}, expected {shape}")
-    for key in ("sar", "echo"):
+    for key in ("sar", "echo", "echo_clean"):
         if arrays[key].ndim != 5 or arrays[key].shape[0] != n:
             problems.append(f"'{key}' has shape {arrays[key].shape}, expected ({n}, V, ...) with 5 axes")
+    views = arrays["echo_clean"].shape[1] if arrays["echo_clean"].ndim == 5 else None
+    for key in ("noise_seed", "noise_sigma"):  # one per view of echo_clean (views against the index: verify)
+        if views is not None and arrays[key].shape != (n, views):
+            problems.append(f"'{key}' has shape {arrays[key].shape}, expected ({n}, {views}) as echo_clean's views")
     for key, total in (("vert_offsets", "verts"), ("face_offsets", "faces")):
         off = arrays[key]
         if off.shape == (n + 1,) and (off[0] != 0 or off[-1] != len(arrays[total]) or np.any(np.diff(off) < 0)):
@@ -221,6 +254,11 @@ class Shard:
     def __init__(self, path: str | os.PathLike, mmap: bool = True):
         self.path = Path(path)
         self.arrays = _mapped_arrays(self.path) if mmap else _loaded_arrays(self.path)
+        missing = [k for k in SHARD_KEYS if k not in self.arrays]
+        if missing and set(missing) <= set(ADDED_IN_FORMAT_2):
+            root = self.path.parent.parent if self.path.parent.name == SHARD_DIR else None
+            raise InputError(f"{self.path}: a format-1 shard (no {', '.join(missing)}); this code reads format "
+                             f"{FORMAT_VERSION} only: {rebuild_advice(root)}")
         problems = structure_problems(self.arrays)
         if problems:
             raise InputError(f"{self.path}: not a valid shard: {'; '.join(problems)}")
@@ -244,9 +282,38 @@ class Shard:
             vert_labels=np.array(a["vert_labels"][v0:v1]),
             sar=np.array(a["sar"][i]),
             echo=np.array(a["echo"][i]),
+            echo_clean=np.array(a["echo_clean"][i]),
+            noise_seed=np.array(a["noise_seed"][i]),
+            noise_sigma=np.array(a["noise_sigma"][i]),
             center_mm=np.array(a["center_mm"][i]),
             meta=meta,
         )
+
+
+def loss_grid_indices(index: dict) -> tuple[tuple[int, int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(full grid shape (Nx, Ny, N), indices (x, y, frequency) of the loss grid in it) from index.json's radar."""
+    from meshsar_builder.radar.params import decimation_indices
+
+    radar = index["radar"]
+    full = (*(int(n) for n in radar["aperture"]), int(radar["n_samples"]))
+    return full, tuple(decimation_indices(size, int(f)) for size, f in zip(full, radar["loss_decimation"]))
+
+
+def recorded_loss_echo(sample: Sample, index: dict) -> np.ndarray:
+    """The recorded (noisy) echo of a sample on the loss grid, (V, Lx, Ly, Lf) complex64.
+
+    echo_clean plus each view's noise regenerated from its noise_seed and noise_sigma
+    (radar.noise.recorded_echo): bit for bit what the build recorded there, where `echo`
+    holds it only on the coarser echo grid. index: the dataset's index.json (read_index).
+    """
+    from meshsar_builder.radar.noise import recorded_echo
+
+    full, keep = loss_grid_indices(index)
+    if sample.echo_clean.shape[1:] != tuple(len(k) for k in keep):
+        raise InputError(f"{sample.sample_id}: echo_clean has per-view shape {sample.echo_clean.shape[1:]}, the "
+                         f"index's loss grid {tuple(len(k) for k in keep)}")
+    return np.stack([recorded_echo(clean, seed, sigma, full, keep)
+                     for clean, seed, sigma in zip(sample.echo_clean, sample.noise_seed, sample.noise_sigma)])
 
 
 def read_shard(path: str | os.PathLike) -> list[Sample]:
@@ -297,13 +364,27 @@ def build_index(*, recipe: str, recipe_sha256: str, code_version: str, metadata:
     }
 
 
+def rebuild_advice(root: str | os.PathLike | None) -> str:
+    """How to rebuild a dataset made by an older format with this code (the radar stage redoes every sample)."""
+    out = str(root) if root is not None else "OUT"
+    return (f"rebuild it with this code: meshsar build {out}/recipe.toml --out {out} --force radar (the recipe as "
+            f"built is kept in the build folder; the radar and shards stages redo every sample)")
+
+
 def read_index(out_dir: str | os.PathLike) -> dict:
-    """index.json of a build folder; InputError naming the file when missing, unreadable or lacking keys."""
+    """index.json of a build folder; InputError naming the file when missing, unreadable, lacking keys
+    or of another format_version (with how to rebuild it)."""
     path = Path(out_dir) / INDEX_NAME
     try:
         index = read_json(path)
     except (OSError, ValueError) as e:
         raise InputError(f"{path}: cannot read the dataset index ({type(e).__name__}: {e})") from e
+    version = index.get("format_version") if isinstance(index, dict) else None
+    if isinstance(index, dict) and version != FORMAT_VERSION:
+        why = (" (its shards lack echo_clean, noise_seed and noise_sigma, and the index loss_grid)"
+               if version == 1 else "")
+        raise InputError(f"{path}: format_version {version!r}, but this code reads format {FORMAT_VERSION} only"
+                         f"{why}; {rebuild_advice(Path(out_dir))}")
     missing = [k for k in (*INDEX_KEYS, "samples") if not isinstance(index, dict) or k not in index]
     if missing:
         raise InputError(f"{path}: missing keys {missing}")

@@ -31,6 +31,16 @@ def _expected_shapes(index: dict) -> tuple[tuple, int | None]:
     return sar, echo
 
 
+def _loss_grid_size(index: dict) -> int | None:
+    """Lx * Ly * Lf of echo_clean per view, from the index's loss_grid (None if the grid is unusable)."""
+    try:
+        grid = index["loss_grid"]
+        sizes = {len(grid["positions_mm"][v["name"]]) for v in index["views"]}
+        return sizes.pop() * len(grid["frequencies_hz"]) if len(sizes) == 1 else None
+    except (KeyError, TypeError):
+        return None
+
+
 def content_problems(arrays: dict[str, np.ndarray], index: dict) -> list[str]:
     """Element-level checks of structurally sound shard arrays against the index."""
     problems = []
@@ -40,7 +50,12 @@ def content_problems(arrays: dict[str, np.ndarray], index: dict) -> list[str]:
     echo = arrays["echo"].shape[1:]
     if echo[0] != sar_shape[0] or (echo_size is not None and int(np.prod(echo[1:])) != echo_size):
         problems.append(f"echo has per-sample shape {echo}, inconsistent with the index's views and echo_grid")
-    for key in ("verts", "center_mm", "sar", "echo"):
+    clean, loss_size = arrays["echo_clean"].shape[1:], _loss_grid_size(index)
+    if clean[0] != sar_shape[0] or (loss_size is not None and int(np.prod(clean[1:])) != loss_size):
+        problems.append(f"echo_clean has per-sample shape {clean}, inconsistent with the index's views and loss_grid")
+    if np.any(arrays["noise_sigma"] < 0):
+        problems.append("noise_sigma has negative values")
+    for key in ("verts", "center_mm", "sar", "echo", "echo_clean", "noise_sigma"):
         if not np.all(np.isfinite(arrays[key])):
             problems.append(f"{key} has NaN or infinite values")
     if "intensity" in index["channels"] and arrays["sar"].shape[1:] == sar_shape:
