@@ -13,7 +13,7 @@ import nibabel as nib
 import numpy as np
 import trimesh
 
-from meshsar_builder.dataset.sources import InputWarning, LabelItem, read_label_map, warning_messages
+from meshsar_builder.dataset.label_maps import InputWarning, LabelItem, read_label_map, warning_messages
 from meshsar_builder.geometry.meshfile import write_ply
 from meshsar_builder.geometry.meshing import labels_to_surface, long_axis_landmarks
 from meshsar_builder.geometry.structures import STRUCTURES

@@ -23,16 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from meshsar_builder.dataset.sources import (
-    InputWarning,
-    LabelItem,
-    SourceSpec,
-    index_acdc,
-    index_mmwhs,
-    index_nifti,
-    load_shape_model,
-    warning_messages,
-)
+from meshsar_builder.dataset.label_maps import InputWarning, LabelItem, warning_messages
+from meshsar_builder.dataset.shape_models import load_shape_model
+from meshsar_builder.dataset.sources import SourceSpec, index_acdc, index_mmwhs, index_nifti
 from meshsar_builder.geometry import phantom_beating, phantom_heart
 from meshsar_builder.geometry.meshfile import write_ply
 from meshsar_builder.geometry.ssm import sample_valid

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from meshsar_builder.dataset.sources import MMWHS_TABLE, InputWarning, index_acdc, index_nifti, read_label_map
+from meshsar_builder.dataset.label_maps import InputWarning, read_label_map
+from meshsar_builder.dataset.sources import MMWHS_TABLE, index_acdc, index_nifti
 from meshsar_builder.geometry.meshfile import read_ply
 from meshsar_builder.pipeline import recipe as R
 from meshsar_builder.pipeline.errors import InputError, RecipeError

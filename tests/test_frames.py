@@ -14,16 +14,8 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from meshsar_builder.dataset.sources import (
-    ACDC_TABLE,
-    InputWarning,
-    LabelItem,
-    SourceSpec,
-    index_acdc,
-    index_nifti,
-    n_frames,
-    read_label_map,
-)
+from meshsar_builder.dataset.label_maps import InputWarning, LabelItem, n_frames, read_label_map
+from meshsar_builder.dataset.sources import ACDC_TABLE, SourceSpec, index_acdc, index_nifti
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline import recipe as R
 from meshsar_builder.pipeline.errors import InputError, RecipeError

@@ -42,7 +42,8 @@ def test_every_phantom_full_whole_heart_subject_is_accepted(tmp_path):
     resolution to stay quick."""
     from pathlib import Path
 
-    from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.dataset.label_maps import read_label_map
+    from meshsar_builder.dataset.sources import MMWHS_TABLE
     from meshsar_builder.geometry.groupwise import register_groupwise
     from meshsar_builder.geometry.meshing import labels_to_surface
     from meshsar_builder.geometry.phantom_heart import write_mmwhs_subject
@@ -79,7 +80,8 @@ def labelled_heart(tmp_path_factory):
     """A phantom whole heart (1.5 mm voxels, smoke meshing, 2.5 mm edges) with its long-axis warps."""
     from pathlib import Path
 
-    from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.dataset.label_maps import read_label_map
+    from meshsar_builder.dataset.sources import MMWHS_TABLE
     from meshsar_builder.geometry.landmarks import label_landmarks
     from meshsar_builder.geometry.meshing import labels_to_surface
     from meshsar_builder.geometry.phantom_heart import write_mmwhs_subject
@@ -115,7 +117,8 @@ def smoke_phantoms(tmp_path_factory):
     """The smoke recipe's 3 whole-heart subjects, remeshed as its stages do, and their volumes."""
     from pathlib import Path
 
-    from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.dataset.label_maps import read_label_map
+    from meshsar_builder.dataset.sources import MMWHS_TABLE
     from meshsar_builder.geometry.meshing import labels_to_surface
     from meshsar_builder.geometry.phantom_heart import write_mmwhs_subject
     from meshsar_builder.pipeline.seeding import item_rng

@@ -352,7 +352,8 @@ def test_decimated_echo_is_the_full_echo_on_the_echo_grid():
 
 def test_chebyshev_echo_matches_direct_on_a_phantom_heart(tmp_path):
     """A whole-heart phantom mesh, visible facets weighted as the radar stage does, one view."""
-    from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.dataset.label_maps import read_label_map
+    from meshsar_builder.dataset.sources import MMWHS_TABLE
     from meshsar_builder.geometry import phantom_heart
     from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface
 

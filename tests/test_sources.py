@@ -10,17 +10,9 @@ import numpy as np
 import pytest
 
 from meshsar_builder.dataset.shards import Shard
-from meshsar_builder.dataset.sources import (
-    ACDC_TABLE,
-    MMWHS_TABLE,
-    InputWarning,
-    index_acdc,
-    index_mmwhs,
-    index_nifti,
-    load_shape_model,
-    read_label_map,
-    read_surface,
-)
+from meshsar_builder.dataset.label_maps import InputWarning, read_label_map
+from meshsar_builder.dataset.shape_models import load_shape_model, read_surface
+from meshsar_builder.dataset.sources import ACDC_TABLE, MMWHS_TABLE, index_acdc, index_mmwhs, index_nifti
 from meshsar_builder.dataset.verify import verify
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.structures import STRUCTURES

@@ -44,7 +44,8 @@ def demo_subject(index: int = 0):
 
     Seeded and read back exactly as the sources and meshes stages do.
     """
-    from meshsar_builder.dataset.sources import MMWHS_TABLE, read_label_map
+    from meshsar_builder.dataset.label_maps import read_label_map
+    from meshsar_builder.dataset.sources import MMWHS_TABLE
     from meshsar_builder.geometry import phantom_heart
     from meshsar_builder.geometry.meshing import labels_to_surface
     from meshsar_builder.pipeline.seeding import item_rng
