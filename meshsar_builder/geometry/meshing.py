@@ -1,7 +1,7 @@
 """Label maps to closed surface meshes: signed distance, isotropic resampling, marching cubes.
 
 DESIGN section 6. The signed distance of the union mask (EDT on both sides, in
-mm) is resampled linearly to isotropic spacing and smoothed lightly before
+mm) is resampled (cubic B-spline) to isotropic spacing and smoothed lightly before
 marching cubes: the distance to voxel centres is jagged, and thick ACDC slices
 would stair-step without the resampling.
 """
@@ -124,7 +124,12 @@ def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams) -> Iso
     sdf = signed_distance(padded, voxel_mm)
     axes = [np.arange(0, n - 1 + 1e-9, s) for n, s in zip(padded.shape, step)]
     coords = np.meshgrid(*axes, indexing="ij")
-    iso = ndimage.map_coordinates(sdf, coords, order=1, mode="nearest").astype(np.float32)
+    # Cubic B-spline, not linear: across thick slices (5-10 mm short-axis stacks) a linear blend
+    # of the distance cuts chords inside a convex surface. Measured at 6/8/10 mm slices: a 30 mm
+    # sphere's volume -1.7/-3.1/-3.5 % linear, -1.0/-1.3/-1.4 % cubic; a half-spheroid LV
+    # (r 25, L 70, base on a slice boundary) -1.9/-3.0/-4.0 % against -1.2/-1.7/-1.9 %, with
+    # the mean distance to the true surface no worse (docs/topology.md).
+    iso = ndimage.map_coordinates(sdf, coords, order=3, mode="nearest").astype(np.float32)
     del coords
     if params.sigma_mm > 0:
         iso = ndimage.gaussian_filter(iso, params.sigma_mm / params.spacing_mm, mode="nearest")
