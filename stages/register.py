@@ -48,7 +48,7 @@ from meshsar_builder.pipeline.seeding import item_rng
 NAME = "register"
 # These decide how many rounds run, not what one fit gives (the template's digest carries
 # the smoothing), so a change does not redo the rounds already done.
-ROUND_KEYS = ("groupwise_rounds", "groupwise_converge_mm", "groupwise_smoothing")
+ROUND_KEYS = ("groupwise_rounds", "groupwise_converge_mm", "groupwise_smoothing", "groupwise_max_distance_mm")
 
 
 def ssm_subjects(results: Results) -> dict[str, dict]:
@@ -95,13 +95,18 @@ def groupwise_template(ctx: Context, round_: int, fits: dict[str, dict]) -> tupl
     previous = folder / f"template-{round_ - 1}.ply"
     want = {"round": round_, "previous_sha256": sha256_file(previous),
             "fits": {i: rec["outputs"][f"{i}.ply"] for i, rec in fits.items()},
-            "smoothing": ctx.recipe.registration.groupwise_smoothing}
+            "smoothing": ctx.recipe.registration.groupwise_smoothing,
+            "max_distance_mm": ctx.recipe.registration.groupwise_max_distance_mm}
     path, meta = folder / f"template-{round_}.ply", folder / f"template-{round_}.json"
     if path.exists() and _current(meta, want):
         return str(path), read_json(meta)["movement_mm"]
     t_verts, t_faces, t_labels = read_ply(previous)
     shapes = np.stack([read_ply(folder / f"{i}.ply")[0] for i in fits])
-    verts, report = mean_template(shapes, t_faces, t_verts, ctx.recipe.registration.groupwise_smoothing)
+    verts, report = mean_template(shapes, t_faces, t_verts, ctx.recipe.registration.groupwise_smoothing,
+                                  ctx.recipe.registration.groupwise_max_distance_mm)
+    ids = list(fits)
+    report["left_out"] = [ids[k] for k in report["left_out"]]
+    report["distance_to_fits_mm"] = dict(zip(ids, report["distance_to_fits_mm"]))
     write_ply(path, verts, t_faces, t_labels)
     write_json(meta, {**want, **report})
     return str(path), report["movement_mm"]

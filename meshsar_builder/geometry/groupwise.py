@@ -70,8 +70,14 @@ def movement(previous: np.ndarray, verts: np.ndarray) -> tuple[float, float]:
     return float(step.mean()), float(step.max())
 
 
+def fit_distances(fits: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """(s,) mean vertex distance (mm) of each fit (s, n, 3), rigidly fitted to `verts` (n, 3), from it."""
+    return np.array([np.linalg.norm(rigid_fit(fit, verts) - verts, axis=1).mean() for fit in fits])
+
+
 def mean_template(
-    fits: np.ndarray, faces: np.ndarray, previous: np.ndarray, max_smoothing: int
+    fits: np.ndarray, faces: np.ndarray, previous: np.ndarray, max_smoothing: int,
+    max_distance_mm: float | None = None,
 ) -> tuple[np.ndarray, dict]:
     """The groupwise template of one round.
 
@@ -81,11 +87,26 @@ def mean_template(
     JSON-ready report: subjects, movement_mm and movement_max_mm (from `previous`, see
     movement), smoothing_steps, and the plain mean's self_intersections and flipped_faces.
     Raises MeshError when max_smoothing Taubin steps leave faces intersecting or flipped.
+    With max_distance_mm, the template is checked against the fits it averages before it is
+    used: a fit whose mean vertex distance from the mean (rigidly fitted) exceeds it is left
+    out and the mean made again without it (report: distance_to_fits_mm, each fit's distance
+    from the final template; left_out, the indices left out); fewer than 2 left raises.
     """
     fits = np.asarray(fits, dtype=np.float64)
     if fits.ndim != 3 or len(fits) < 2:
         raise MeshError(f"groupwise template: needs the fits of at least 2 subjects, got {len(fits)}")
+    kept = np.arange(len(fits))
     _, mean = procrustes_align(fits, PROCRUSTES_ITERATIONS)
+    if max_distance_mm is not None:
+        far = fit_distances(fits, mean) > max_distance_mm
+        if far.any():
+            kept = np.flatnonzero(~far)
+            if len(kept) < 2:
+                raise MeshError(
+                    f"groupwise template: {int(far.sum())} of {len(fits)} fits lie farther than "
+                    f"{max_distance_mm} mm (groupwise_max_distance_mm) from their mean: "
+                    + ", ".join(f"{d:.1f}" for d in fit_distances(fits, mean)) + " mm")
+            _, mean = procrustes_align(fits[kept], PROCRUSTES_ITERATIONS)
     plain = bbox_centred(mean)
     before = rigid_fit(np.asarray(previous, dtype=np.float64), plain)
     verts, report = plain, {"subjects": len(fits)}
@@ -105,7 +126,11 @@ def mean_template(
             f"after {max_smoothing} Taubin steps (groupwise_smoothing)"
         )
     moved_mean, moved_max = movement(previous, verts)
-    return verts, report | {"smoothing_steps": steps, "movement_mm": moved_mean, "movement_max_mm": moved_max}
+    report |= {"smoothing_steps": steps, "movement_mm": moved_mean, "movement_max_mm": moved_max}
+    if max_distance_mm is not None:
+        report |= {"distance_to_fits_mm": [round(float(d), 4) for d in fit_distances(fits, verts)],
+                   "left_out": [int(i) for i in np.setdiff1d(np.arange(len(fits)), kept)]}
+    return verts, report
 
 
 def final_round(round_: int, moved_mm: float | None, params: RegistrationParams) -> bool:
@@ -150,7 +175,8 @@ def register_groupwise(
         rounds.append(record)
         if final:
             return np.stack(fits), np.stack(templates), rounds
-        t_verts, summary = mean_template(np.stack(fits), t_faces, t_verts, params.groupwise_smoothing)
+        t_verts, summary = mean_template(np.stack(fits), t_faces, t_verts, params.groupwise_smoothing,
+                                         params.groupwise_max_distance_mm)
         templates.append(t_verts)
         moved, round_ = summary["movement_mm"], round_ + 1
         rounds[-1]["next_template"] = summary

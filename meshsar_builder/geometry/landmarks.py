@@ -8,6 +8,16 @@ landmark term needs. From the labels alone, every mesh gets:
   midpoints of the edges from one to the other), e.g. a valve or a vessel ring;
 - `apex`: the mean of the ventricular (lv, myo) vertices within `APEX_BAND_MM` of the one
   farthest from the centroid of the other structures (the base of the heart).
+Each landmark carries a confidence (how well the labels define it), and one that is ill
+defined is dropped, its reason kept in `Landmarks.dropped` (the fit's report and sidecar):
+- the apex only where the ventricle is elongated (the square root of the ratio of its two
+  largest principal moments at least `APEX_MIN_ELONGATION`) and the base-to-apex direction
+  runs along its long axis (|cos| at least `APEX_MIN_ALIGNMENT`): a biventricular map's
+  "base" is the RV beside the LV, not above it, so its farthest point is a lateral wall point
+  that moves with every tessellation; its confidence is the smaller of the two ratios to
+  their thresholds;
+- a junction ring only where the junction is at least `RING_MIN_MM` long (the length of the
+  boundary curve through the midpoints of its crossing edges); confidence length / RING_MIN_MM.
 Two meshes share the landmarks whose keys both have, so each pair means the same anatomy.
 """
 
@@ -24,6 +34,9 @@ from meshsar_builder.geometry.structures import STRUCTURES
 NAMES = {value: name for name, value in STRUCTURES.items()}
 VENTRICLE = (STRUCTURES["lv"], STRUCTURES["myo"])
 APEX_BAND_MM = 2.0
+APEX_MIN_ELONGATION = 1.3
+APEX_MIN_ALIGNMENT = 0.7
+RING_MIN_MM = 20.0
 
 
 def structure_name(label: int) -> str:
@@ -32,10 +45,14 @@ def structure_name(label: int) -> str:
 
 @dataclass(frozen=True)
 class Landmarks:
-    """keys: (k,) names; weights: (k, n) sparse, rows sum to 1 (landmark points = weights @ verts)."""
+    """keys: (k,) names; weights: (k, n) sparse, rows sum to 1 (landmark points = weights @ verts);
+    confidence: (k,) >= 1 for a kept landmark (how far past its threshold; module docstring);
+    dropped: ill-defined landmarks left out, key -> reason."""
 
     keys: tuple[str, ...]
     weights: sp.csr_matrix
+    confidence: tuple[float, ...] = ()
+    dropped: tuple[tuple[str, str], ...] = ()
 
     def points(self, verts: np.ndarray) -> np.ndarray:
         """verts (n, 3) -> landmark points (k, 3)."""
@@ -43,7 +60,8 @@ class Landmarks:
 
     def select(self, keys: list[str]) -> Landmarks:
         rows = [self.keys.index(k) for k in keys]
-        return Landmarks(tuple(keys), self.weights[rows])
+        confidence = tuple(self.confidence[r] for r in rows) if self.confidence else ()
+        return Landmarks(tuple(keys), self.weights[rows], confidence, self.dropped)
 
 
 def _vertex_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -62,11 +80,12 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
     verts, faces, labels = np.asarray(verts, dtype=np.float64), np.asarray(faces), np.asarray(labels).astype(np.int64)
     n = len(verts)
     areas = _vertex_areas(verts, faces)
-    keys, rows = [], []
+    keys, rows, confidence, dropped = [], [], [], []
 
-    def add(key: str, index: np.ndarray, weight: np.ndarray) -> None:
+    def add(key: str, index: np.ndarray, weight: np.ndarray, sure: float = 1.0) -> None:
         keys.append(key)
         rows.append(sp.csr_matrix((weight / weight.sum(), (np.zeros(len(index), dtype=int), index)), shape=(1, n)))
+        confidence.append(round(float(sure), 3))
 
     present = [s for s in np.unique(labels) if s != 0 and (labels == s).sum() >= min_vertices]
     for s in present:
@@ -78,23 +97,66 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
         for b in present[i + 1:]:
             crossing = np.unique(edges[((pairs[:, 0] == a) & (pairs[:, 1] == b)) | ((pairs[:, 0] == b) & (pairs[:, 1] == a))], axis=0)
             if len(crossing) >= min_vertices:
+                key = f"ring:{structure_name(a)}-{structure_name(b)}"
+                length = _junction_length(verts, faces, labels, a, b)
+                if length < RING_MIN_MM:
+                    dropped.append((key, f"junction {length:.1f} mm long < {RING_MIN_MM} mm"))
+                    continue
                 # Mean of the crossing edges' midpoints: on the boundary itself, not on one side of it.
-                add(f"ring:{structure_name(a)}-{structure_name(b)}", crossing.ravel(), np.ones(crossing.size))
+                add(key, crossing.ravel(), np.ones(crossing.size), length / RING_MIN_MM)
     ventricle = np.isin(labels, VENTRICLE)
     base = (labels != 0) & ~ventricle
     if ventricle.sum() >= min_vertices and base.sum() >= min_vertices:
         index = np.flatnonzero(ventricle)
         distance = np.linalg.norm(verts[index] - verts[base].mean(axis=0), axis=1)
         band = index[distance >= distance.max() - APEX_BAND_MM]
-        add("apex", band, np.ones(len(band)))
+        elongation, alignment = _apex_shape(verts[index], areas[index], verts[band].mean(axis=0) - verts[base].mean(axis=0))
+        if elongation < APEX_MIN_ELONGATION or alignment < APEX_MIN_ALIGNMENT:
+            dropped.append(("apex", f"ill-defined: ventricle elongation {elongation:.2f} (least {APEX_MIN_ELONGATION}), "
+                                    f"base-to-apex along its long axis |cos| {alignment:.2f} (least {APEX_MIN_ALIGNMENT})"))
+        else:
+            add("apex", band, np.ones(len(band)), min(elongation / APEX_MIN_ELONGATION, alignment / APEX_MIN_ALIGNMENT))
     weights = sp.vstack(rows, format="csr") if rows else sp.csr_matrix((0, n))
-    return Landmarks(tuple(keys), weights)
+    return Landmarks(tuple(keys), weights, tuple(confidence), tuple(dropped))
+
+
+def _apex_shape(points: np.ndarray, weights: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
+    """Elongation (sqrt of the largest over the second principal moment) of weighted points (p, 3)
+    and |cos| between `direction` (3,) and their long axis."""
+    centred = points - np.average(points, axis=0, weights=weights)
+    values, vectors = np.linalg.eigh((centred * weights[:, None]).T @ centred / weights.sum())
+    elongation = float(np.sqrt(values[2] / max(values[1], 1e-12)))
+    alignment = float(abs(vectors[:, 2] @ direction) / max(np.linalg.norm(direction), 1e-12))
+    return elongation, alignment
+
+
+def _junction_length(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, a: int, b: int) -> float:
+    """Length (mm) of the boundary between structures a and b: in every face with corners of both
+    (and no third label), the segment between the midpoints of its two edges that cross it."""
+    corner = labels[faces]
+    total = 0.0
+    for odd in range(3):  # the corner whose label the other two do not share
+        others = [(odd + 1) % 3, (odd + 2) % 3]
+        mine = (corner[:, others[0]] == corner[:, others[1]]) & (corner[:, odd] != corner[:, others[0]]) & (
+            np.isin(corner[:, odd], (a, b)) & np.isin(corner[:, others[0]], (a, b)))
+        f = faces[mine]
+        first = 0.5 * (verts[f[:, odd]] + verts[f[:, others[0]]])
+        second = 0.5 * (verts[f[:, odd]] + verts[f[:, others[1]]])
+        total += float(np.linalg.norm(first - second, axis=1).sum())
+    return total
 
 
 def common_landmarks(a: Landmarks, b: Landmarks) -> tuple[Landmarks, Landmarks]:
     """The landmarks both sets have, in one order."""
     keys = [k for k in a.keys if k in b.keys]
     return a.select(keys), b.select(keys)
+
+
+def dropped_landmarks(a: Landmarks, b: Landmarks) -> dict[str, str]:
+    """Landmarks either side dropped as ill-defined, key -> reason (template's first)."""
+    out = {key: f"subject: {why}" for key, why in b.dropped}
+    out |= {key: f"template: {why}" for key, why in a.dropped}
+    return out
 
 
 def face_labels(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:

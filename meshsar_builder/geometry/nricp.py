@@ -334,8 +334,9 @@ def _matches(
     params: RegistrationParams,
     normal_power: float,
     distance: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Data-term weights (n,) and targets (n, 3) of the current fit (normalised units).
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Data-term weights (n,), targets (n, 3) and the mean distance of every fit vertex to its
+    closest subject point (the divergence monitor's measure) of the current fit (normalised units).
 
     Template-to-subject: each fit vertex to its closest subject surface point. Subject-to-
     template: each subject vertex to its nearest fit vertex, weighted by the subject vertex's
@@ -362,7 +363,7 @@ def _matches(
         for axis in range(3):
             sums[:, axis] += np.bincount(nearest, w_r * subject.verts[:, axis], minlength=len(fit))
     targets = np.where(weights[:, None] > 0, sums / np.maximum(weights, 1e-300)[:, None], fit)
-    return weights, targets
+    return weights, targets, float(dist.mean())
 
 
 def _bad_faces(aligned: np.ndarray, fit: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -426,7 +427,14 @@ def nricp(
         # as at the apex) are not kept for free.
         x.reshape(system.n, 4, 3)[:, 3] += (start - centre) / scale - reference
     steps_kept, repeats = 0, 0
-    for alpha, normal_power in zip(params.stiffness, params.normal_weight):
+    # Divergence monitor: the mean distance of the fit's vertices to their closest subject
+    # points (measured anyway by the matches) and its flipped faces, every iteration. A fit
+    # whose distance grows past divergence_growth times the least it reached (and by more
+    # than max_mean_mm), or whose faces turn over in numbers (divergence_flipped of them),
+    # is stopped at once at its last fold-free step; the caller retries or rejects it.
+    least, diverged, history = np.inf, None, []
+    floor, too_many = params.max_mean_mm / scale, max(1, int(np.ceil(params.divergence_flipped * len(faces))))
+    for step, (alpha, normal_power) in enumerate(zip(params.stiffness, params.normal_weight)):
         # A repeat goes on from the folded fit: flipped faces lose their matches (their normals
         # disagree), so the stiffened region relaxes back while the rest stays fitted.
         x_step = x
@@ -435,8 +443,19 @@ def nricp(
             stiffness = alpha**2 * system.stiffness(vertex_weights, edge_weights)
             fit = system.apply(x_step)
             factor = None
-            for _ in range(params.step_iterations):
-                weights, targets = _matches(fit, faces, subject, template_area, params, normal_power, distance)
+            for iteration in range(params.step_iterations):
+                weights, targets, mean_distance = _matches(fit, faces, subject, template_area, params, normal_power,
+                                                           distance)
+                flipped = int(flipped_faces(reference, fit, faces).sum())
+                if mean_distance > params.divergence_growth * least and mean_distance - least > floor:
+                    diverged = {"reason": "surface distance grew", "step": step, "iteration": iteration,
+                                "mean_mm": mean_distance * scale, "least_mm": least * scale, "flipped_faces": flipped}
+                elif flipped >= too_many:
+                    diverged = {"reason": "faces flipped in numbers", "step": step, "iteration": iteration,
+                                "mean_mm": mean_distance * scale, "least_mm": least * scale, "flipped_faces": flipped}
+                if diverged:
+                    break
+                least = min(least, mean_distance)
                 data, rhs = system.data(weights, targets)
                 matrix = _Operator((stiffness + data).tocsr(), rows, beta)
                 if rows is not None:
@@ -449,6 +468,8 @@ def nricp(
                 fit = moved
                 if change < converge:
                     break
+            if diverged:
+                break
             bad = _bad_faces(reference, fit, faces)
             if not bad.any():
                 x, steps_kept = x_step, steps_kept + 1
@@ -460,14 +481,21 @@ def nricp(
             vertex_weights[region] *= params.fold_stiffening
             inside = region[system.edges].all(axis=1)
             edge_weights[inside] = params.fold_stiffening * np.maximum(edge_weights[inside], system.edge_base[inside])
-        if bad.any():
+        history.append(round(least * scale, 4))
+        if diverged or bad.any():
             break  # keep the last fold-free step
+    if diverged and steps_kept == 0:
+        x = system.identity()  # a start that runs away is no fold-free step: back to the pre-aligned template
     summary = {
         "steps_kept": steps_kept,
         "steps": len(params.stiffness),
         "fold_repeats": repeats,
         "stiffened_vertices": int((vertex_weights > base_weights).sum()),
+        # Least mean vertex-to-subject distance (mm) reached by the end of each step run.
+        "step_distances_mm": history,
     }
+    if diverged:
+        summary["diverged"] = {k: round(v, 4) if isinstance(v, float) else v for k, v in diverged.items()}
     return system.apply(x) * scale + centre, summary
 
 

@@ -10,6 +10,8 @@ distance, its folds and its per-structure label agreement (accept).
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 from collections.abc import Mapping
 
 import numpy as np
@@ -17,6 +19,7 @@ import trimesh
 
 from meshsar_builder.geometry.landmarks import (
     common_landmarks,
+    dropped_landmarks,
     face_labels,
     label_agreement,
     label_landmarks,
@@ -162,6 +165,26 @@ def _prealign_landmarks(
     return matrix
 
 
+def _check_start(
+    aligned: np.ndarray, start: np.ndarray, faces: np.ndarray, subject_verts: np.ndarray, subject_faces: np.ndarray,
+    params: RegistrationParams,
+) -> tuple[np.ndarray | None, dict]:
+    """The spline's start of the non-rigid fit, or None (start from the similarity pre-alignment)
+    when it is worse than that: it turns faces over in numbers (divergence_flipped) or lies
+    farther from the subject (mean vertex distance), by the divergence monitor's rule
+    (divergence_growth times, and max_mean_mm more). A spline through a few landmarks
+    extrapolates: through 3 centroids and an apex that are nearly coplanar (a biventricular
+    heart whose 'apex' is ill-defined), its affine part sent real fits 320 mm away."""
+    before = float(point_to_surface(aligned, subject_verts, subject_faces)[0].mean())
+    after = float(point_to_surface(start, subject_verts, subject_faces)[0].mean())
+    flipped = int(flipped_faces(aligned, start, faces).sum())
+    report = {"start": "spline", "start_mean_mm": round(after, 4), "similarity_mean_mm": round(before, 4),
+              "start_flipped_faces": flipped}
+    if flipped >= max(1, params.divergence_flipped * len(faces)) or after > params.divergence_growth * before + params.max_mean_mm:
+        return None, report | {"start": "similarity (spline refused)"}
+    return start, report
+
+
 def register(
     template_verts: np.ndarray,
     template_faces: np.ndarray,
@@ -198,13 +221,81 @@ def register(
     A subject that is not closed genus 0 raises MeshError. Judge the fit with accept().
     """
     require_valid(subject_verts, subject_faces, "registration subject")
+    fitted, report = _register_once(template_verts, template_faces, subject_verts, subject_faces, params, rng,
+                                    template_labels, subject_labels, ())
+    offenders = report.get("landmark_offenders", [])
+    if offenders:
+        # The fit moved these landmarks away from their subject's by more than the robust start
+        # did (landmark_tolerance_mm): again without them, then rejected naming them (accept).
+        first = {k: report[k] for k in ("landmark_offenders", "landmark_error_mm", "landmark_start_error_mm")}
+        fitted, report = _register_once(template_verts, template_faces, subject_verts, subject_faces, params, rng,
+                                        template_labels, subject_labels, tuple(offenders))
+        report["landmark_retry"] = first
+    return fitted, report
+
+
+def robust_landmarks(moving: np.ndarray, fixed: np.ndarray, similarity: bool, floor_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Least-median-of-squares similarity (or rigid) fit between corresponding landmarks.
+
+    moving, fixed : (k, 3) mm. Every triple of landmarks (at most 560, chosen evenly) proposes a
+    Procrustes fit; the one with the least median squared residual over all landmarks wins
+    (Rousseeuw's LMedS: half the landmarks may disagree). A landmark is an inlier when its
+    residual is within 2.5 robust standard deviations (1.4826 (1 + 5 / (k - 3)) sqrt(median))
+    or floor_mm, whichever is larger; the fit is then redone on the inliers.
+    Returns the inlier mask (k,) and every landmark's residual (k,) mm under that final fit.
+    With fewer than 4 landmarks nothing can be outvoted: all are inliers.
+    """
+    k = len(moving)
+    options = {"reflection": False, "scale": similarity, "return_cost": False}
+    if k < 4:
+        matrix = trimesh.registration.procrustes(moving, fixed, **options) if k >= 3 else np.eye(4)
+        return np.ones(k, bool), np.linalg.norm(_apply(matrix, moving) - fixed, axis=1)
+    triples = np.array(list(itertools.combinations(range(k), 3)))
+    triples = triples[np.linspace(0, len(triples) - 1, min(len(triples), 560)).astype(int)]
+    best, best_median = None, np.inf
+    for triple in triples:
+        try:
+            matrix = trimesh.registration.procrustes(moving[triple], fixed[triple], **options)
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if not np.all(np.isfinite(matrix)):
+            continue
+        median = float(np.median(np.sum((_apply(matrix, moving) - fixed) ** 2, axis=1)))
+        if median < best_median:
+            best, best_median = matrix, median
+    if best is None:
+        return np.ones(k, bool), np.zeros(k)
+    sigma = 1.4826 * (1 + 5 / (k - 3)) * np.sqrt(best_median)
+    inliers = np.linalg.norm(_apply(best, moving) - fixed, axis=1) <= max(2.5 * sigma, floor_mm)
+    if inliers.sum() >= 3:
+        best = trimesh.registration.procrustes(moving[inliers], fixed[inliers], **options)
+    return inliers, np.linalg.norm(_apply(best, moving) - fixed, axis=1)
+
+
+def _register_once(
+    template_verts, template_faces, subject_verts, subject_faces, params: RegistrationParams, rng,
+    template_labels, subject_labels, exclude: tuple[str, ...],
+) -> tuple[np.ndarray, dict]:
+    """register() without the landmark retry; `exclude`: landmark keys left out."""
     template_verts = np.asarray(template_verts, dtype=np.float64)
     subject_verts = np.asarray(subject_verts, dtype=np.float64)
     labels = marks = None
+    dropped: dict[str, str] = {}
     if template_labels is not None and subject_labels is not None:
         labels = (np.asarray(template_labels), np.asarray(subject_labels))
-        marks = common_landmarks(label_landmarks(template_verts, template_faces, labels[0]),
-                                 label_landmarks(subject_verts, subject_faces, labels[1]))
+        both = (label_landmarks(template_verts, template_faces, labels[0]),
+                label_landmarks(subject_verts, subject_faces, labels[1]))
+        dropped = dropped_landmarks(*both)
+        marks = common_landmarks(*both)
+        dropped |= {key: "moved away by an earlier fit (landmark_tolerance_mm)" for key in exclude if key in marks[0].keys}
+        keep = [key for key in marks[0].keys if key not in exclude]
+        inliers, residual = robust_landmarks(marks[0].select(keep).points(template_verts),
+                                             marks[1].select(keep).points(subject_verts), params.similarity,
+                                             params.landmark_outlier_mm)
+        dropped |= {key: f"disagrees with the robust similarity fit of the others by {r:.1f} mm"
+                    for key, ok, r in zip(keep, inliers, residual) if not ok}
+        keep = [key for key, ok in zip(keep, inliers) if ok]
+        marks = (marks[0].select(keep), marks[1].select(keep))
     points = None if marks is None else (marks[0].points(template_verts), marks[1].points(subject_verts))
     matrix = prealign(template_verts, template_faces, subject_verts, subject_faces, params, rng, labels, points)
     aligned = _apply(matrix, template_verts)
@@ -212,10 +303,22 @@ def register(
     # The spline follows the centroids and the apex only: junction centres move with where
     # each mesh's label boundary runs out (1-2 mm between tessellations of one surface).
     steer = [i for i, key in enumerate(marks[0].keys) if not key.startswith("ring:")] if marks is not None else []
+    start_report = {"start": "similarity"}
     if len(steer) >= 4 and params.landmark_weight > 0:
         start = landmark_warp(aligned, _apply(matrix, points[0][steer]), points[1][steer], params.landmark_smoothing)
+        start, start_report = _check_start(aligned, start, template_faces, subject_verts, subject_faces, params)
     fitted, summary = nricp(aligned, template_faces, subject_verts, subject_faces, params, labels,
                            None if marks is None else (marks[0].weights, points[1]), start)
+    if "diverged" in summary:
+        # Stopped as it ran away: again from the similarity start alone (no spline, no landmark
+        # term: a landmark that disagrees is the likeliest cause), every stiffness step stiffer.
+        # Its summary holds the first attempt's under "first_attempt"; if it diverges too, the
+        # fit is rejected with both attempts' figures (accept).
+        stiffer = dataclasses.replace(params, stiffness=tuple(a * params.retry_stiffening for a in params.stiffness))
+        first = summary
+        fitted, summary = nricp(aligned, template_faces, subject_verts, subject_faces, stiffer, labels)
+        summary["first_attempt"] = first
+        summary["retry_stiffness"] = list(stiffer.stiffness)
 
     to_subject, to_fit = surface_distances(
         fitted, template_faces, subject_verts, subject_faces, params.distance_samples, rng
@@ -230,15 +333,30 @@ def register(
         "prealign": matrix.tolist(),
         "prealign_scale": float(np.cbrt(np.linalg.det(matrix[:3, :3]))),
         "nricp": summary,
+        **start_report,
     }
     if labels is not None:
         overall, per_structure = label_agreement(fitted, labels[0], subject_verts, subject_faces, labels[1])
         report["label_agreement"] = overall
         report["label_agreement_by_structure"] = per_structure
         report["landmarks"] = list(marks[0].keys)
+        report["landmark_confidence"] = dict(zip(marks[0].keys, marks[0].confidence))
+        report["landmarks_dropped"] = dropped
         if marks[0].keys:
-            report["landmark_error_mm"] = float(np.linalg.norm(marks[0].points(fitted) - points[1], axis=1).mean())
+            after = np.linalg.norm(marks[0].points(fitted) - points[1], axis=1)
+            before = np.linalg.norm(marks[0].points(aligned) - points[1], axis=1)
+            report["landmark_error_mm"] = float(after.mean())
+            report["landmark_start_error_mm"] = float(before.mean())
+            report["landmark_errors_mm"] = {k: round(float(e), 3) for k, e in zip(marks[0].keys, after)}
+            if after.mean() > before.mean() + params.landmark_tolerance_mm:
+                report["landmark_offenders"] = [k for k, a, b in zip(marks[0].keys, after, before)
+                                                if a > b + params.landmark_tolerance_mm]
     return fitted, report
+
+
+def _diverged_text(d: dict) -> str:
+    return (f"{d['reason']} at stiffness step {d['step'] + 1}, iteration {d['iteration'] + 1} "
+            f"(mean distance {d['mean_mm']:.2f} mm, least {d['least_mm']:.2f} mm, {d['flipped_faces']} faces flipped)")
 
 
 def accept(report: dict, params: RegistrationParams, correspondence: bool = True) -> None:
@@ -259,10 +377,19 @@ def accept(report: dict, params: RegistrationParams, correspondence: bool = True
         reasons.append(f"{report['flipped_faces']} flipped faces")
     if report["self_intersections"]:
         reasons.append(f"{report['self_intersections']} self-intersecting faces")
+    if "diverged" in report.get("nricp", {}):
+        reasons.append("diverged twice: " + "; then ".join(
+            _diverged_text(d) for d in (report["nricp"].get("first_attempt", {}).get("diverged"), report["nricp"]["diverged"]) if d))
     agreement = report.get("label_agreement_by_structure", {}) if correspondence else {}
     low = {s: a for s, a in agreement.items() if a < params.min_label_agreement}
     if low:
         listed = ", ".join(f"{s} {a:.3f}" for s, a in sorted(low.items(), key=lambda item: item[1]))
         reasons.append(f"label agreement < {params.min_label_agreement} for {listed}")
+    if report.get("landmark_offenders"):
+        reasons.append(
+            f"landmark error {report['landmark_error_mm']:.2f} mm > the robust start's "
+            f"{report['landmark_start_error_mm']:.2f} mm + {params.landmark_tolerance_mm} mm (landmark_tolerance_mm), "
+            f"after a retry without {', '.join(report.get('landmark_retry', {}).get('landmark_offenders', [])) or 'none'}; "
+            f"moved away: {', '.join(report['landmark_offenders'])}")
     if reasons:
         raise MeshError("registration rejected: " + "; ".join(reasons))

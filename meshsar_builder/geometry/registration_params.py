@@ -48,11 +48,29 @@ class RegistrationParams:
     landmark_smoothing: regulariser of that spline (see landmarks.landmark_warp).
     min_label_agreement: least fraction of each structure's template vertices that must
         land on their own structure (see landmarks.label_agreement) for acceptance.
+    landmark_outlier_mm: a landmark is an inlier of the robust (least-median-of-squares)
+        similarity fit between template and subject landmarks when within this, or 2.5 robust
+        standard deviations (registration.robust_landmarks); the others are dropped, named in
+        the report's landmarks_dropped.
+    landmark_tolerance_mm: a fit whose mean landmark error exceeds that of its similarity
+        start by more than this is retried without the landmarks it moved away (each by more
+        than this), then rejected naming them.
     groupwise_rounds: most registrations to a groupwise template (the Procrustes mean of the
         previous round's fits, groupwise.py) after the first one to the reference subject;
         0 keeps the reference subject as the template.
     groupwise_converge_mm: the rounds stop early once the template moved less than this
         (mean vertex displacement from the previous template, after a rigid fit).
+    divergence_growth: a fit is stopped at once (nricp.py) when the mean distance of its
+        vertices to the subject grows past this factor times the least it reached (and by more
+        than max_mean_mm), or when
+    divergence_flipped: this fraction of its faces are turned over against the pre-aligned
+        template; it is then retried from the similarity start (no spline) with every
+        stiffness times retry_stiffening and the landmarks left out, and rejected with the
+        figures if that diverges too (accept).
+    retry_stiffening: see divergence_flipped.
+    groupwise_max_distance_mm: a groupwise template (round >= 1) is refused when its mean
+        two-sided surface distance to the fits it averages (each rigidly fitted to it)
+        exceeds this; the round then keeps the previous template.
     groupwise_smoothing: most Taubin steps on a groupwise template to clear self-
         intersections and flipped faces of the plain mean before the round fails.
     """
@@ -80,6 +98,12 @@ class RegistrationParams:
     groupwise_rounds: int = 2
     groupwise_converge_mm: float = 0.5
     groupwise_smoothing: int = 10
+    landmark_outlier_mm: float = 5.0
+    landmark_tolerance_mm: float = 2.0
+    divergence_growth: float = 1.5
+    divergence_flipped: float = 0.01
+    retry_stiffening: float = 4.0
+    groupwise_max_distance_mm: float = 10.0
 
     def __post_init__(self) -> None:
         if not self.template:
@@ -127,5 +151,17 @@ class RegistrationParams:
             raise ValueError(f"groupwise_converge_mm: must be >= 0, got {self.groupwise_converge_mm}")
         if self.groupwise_smoothing < 0:
             raise ValueError(f"groupwise_smoothing: must be >= 0, got {self.groupwise_smoothing}")
+        if not self.landmark_outlier_mm > 0:
+            raise ValueError(f"landmark_outlier_mm: must be > 0, got {self.landmark_outlier_mm}")
+        if not self.landmark_tolerance_mm > 0:
+            raise ValueError(f"landmark_tolerance_mm: must be > 0, got {self.landmark_tolerance_mm}")
+        if not self.divergence_growth > 1:
+            raise ValueError(f"divergence_growth: must be > 1, got {self.divergence_growth}")
+        if not 0 < self.divergence_flipped <= 1:
+            raise ValueError(f"divergence_flipped: must be in (0, 1], got {self.divergence_flipped}")
+        if not self.retry_stiffening >= 1:
+            raise ValueError(f"retry_stiffening: must be >= 1, got {self.retry_stiffening}")
+        if not self.groupwise_max_distance_mm > 0:
+            raise ValueError(f"groupwise_max_distance_mm: must be > 0, got {self.groupwise_max_distance_mm}")
         if self.distance_samples < 100:
             raise ValueError(f"distance_samples: must be >= 100, got {self.distance_samples}")

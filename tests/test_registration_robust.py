@@ -1,0 +1,134 @@
+"""Registration that holds on real anatomy (issue 26): landmarks with a confidence, a robust
+landmark check, acceptance that judges the landmark residual, a divergence monitor that stops
+a runaway fit, and a groupwise template checked against the fits it averages."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from meshsar_builder.geometry.groupwise import mean_template
+from meshsar_builder.geometry.landmarks import label_landmarks
+from meshsar_builder.geometry.nricp import nricp
+from meshsar_builder.geometry.registration import accept, register, robust_landmarks
+from meshsar_builder.geometry.registration_params import RegistrationParams
+from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import MeshError
+
+PARAMS = RegistrationParams(distance_samples=2000, template_vertices=500)
+LV, MYO, RV = STRUCTURES["lv"], STRUCTURES["myo"], STRUCTURES["rv"]
+
+
+def labelled(axes, cut_rv=0.3, cut_lv=0.6, subdivisions=4):
+    """An ellipsoid: rv on one side (x > cut_rv * a), an lv cap on top (z > cut_lv * c), myo elsewhere."""
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
+    verts = sphere.vertices * axes
+    labels = np.full(len(verts), MYO, np.uint8)
+    labels[verts[:, 0] > cut_rv * axes[0]] = RV
+    labels[verts[:, 2] > cut_lv * axes[2]] = LV
+    return verts, np.asarray(sphere.faces), labels
+
+
+def test_apex_is_kept_on_an_elongated_ventricle_along_its_axis_and_dropped_on_a_round_one():
+    # Long along z, base (rv) on top: the farthest ventricle point is the bottom tip, on the long axis.
+    verts, faces, _ = labelled((20.0, 20.0, 45.0))
+    labels = np.where(verts[:, 2] > 25.0, RV, MYO).astype(np.uint8)
+    marks = label_landmarks(verts, faces, labels)
+    assert "apex" in marks.keys and marks.confidence[marks.keys.index("apex")] >= 1
+    np.testing.assert_allclose(marks.points(verts)[marks.keys.index("apex")], [0, 0, -45], atol=2.0)  # the mean of a 2 mm band
+    # A round ventricle with the "base" beside it (a biventricular map's rv): no apex, and why.
+    verts, faces, labels = labelled((30.0, 30.0, 30.0))
+    marks = label_landmarks(verts, faces, labels)
+    assert "apex" not in marks.keys
+    assert dict(marks.dropped)["apex"].startswith("ill-defined: ventricle elongation 1.")
+
+
+def test_a_short_junction_gives_no_ring_and_says_so():
+    verts, faces, labels = labelled((30.0, 30.0, 30.0), cut_rv=0.996, subdivisions=5)  # a ~17 mm junction
+    marks = label_landmarks(verts, faces, labels, min_vertices=3)
+    dropped = dict(marks.dropped)
+    assert "ring:myo-rv" not in marks.keys
+    assert "ring:myo-rv" in dropped and "mm long < 20.0 mm" in dropped["ring:myo-rv"]
+    assert "ring:lv-myo" in marks.keys  # long enough (~ 2 pi 24 mm)
+
+
+def test_robust_similarity_outvotes_a_disagreeing_landmark():
+    rng = np.random.default_rng(3)
+    moving = rng.normal(0.0, 30.0, (8, 3))
+    rotation = Rotation.from_euler("xyz", [35, -20, 50], degrees=True).as_matrix()
+    fixed = 1.15 * moving @ rotation.T + (5.0, -3.0, 8.0) + rng.normal(0.0, 0.3, (8, 3))
+    fixed[5] += (40.0, -10.0, 25.0)  # an "apex" found at the wrong end
+    inliers, residual = robust_landmarks(moving, fixed, True, 5.0)
+    assert inliers.tolist() == [True] * 5 + [False] + [True] * 2
+    assert residual[5] > 40 and residual[inliers].max() < 1.5
+    # Fewer than 4: nothing to outvote.
+    assert robust_landmarks(moving[:3], fixed[:3], True, 5.0)[0].all()
+
+
+def test_accept_names_a_divergence_twice_and_the_landmarks_a_fit_moved_away():
+    ok = {"mean_mm": 0.1, "p95_mm": 0.3, "flipped_faces": 0, "self_intersections": 0}
+    went = {"reason": "surface distance grew", "step": 1, "iteration": 3, "mean_mm": 12.0, "least_mm": 1.0,
+            "flipped_faces": 40}
+    nricp_summary = {"diverged": went, "first_attempt": {"diverged": {**went, "reason": "faces flipped in numbers"}}}
+    with pytest.raises(MeshError, match="diverged twice: faces flipped in numbers at stiffness step 2, iteration 4 "
+                                        r"\(mean distance 12.00 mm, least 1.00 mm, 40 faces flipped\); then surface"):
+        accept({**ok, "nricp": nricp_summary}, PARAMS)
+    moved = {**ok, "landmark_error_mm": 6.0, "landmark_start_error_mm": 2.0, "landmark_offenders": ["apex"],
+             "landmark_retry": {"landmark_offenders": ["apex", "centroid:lv"]}}
+    with pytest.raises(MeshError, match=r"landmark error 6.00 mm > the robust start's 2.00 mm \+ 2.0 mm "
+                                        r"\(landmark_tolerance_mm\), after a retry without apex, centroid:lv; "
+                                        "moved away: apex"):
+        accept(moved, PARAMS)
+
+
+def test_a_runaway_start_is_stopped_at_once_and_the_fit_retried_from_the_similarity_start():
+    verts, faces, labels = labelled((30.0, 24.0, 20.0), subdivisions=3)
+    subject = verts * (1.05, 0.97, 1.02)
+    # A start thrown 300 mm away and scrambled, as a spline through coplanar landmarks did.
+    wild = verts + np.random.default_rng(0).normal(0.0, 1.0, verts.shape) * 300.0
+    fitted, summary = nricp(verts, faces, subject, faces, PARAMS, (labels, labels), None, wild)
+    assert summary["diverged"]["step"] == 0 and summary["diverged"]["iteration"] == 0
+    assert summary["steps_kept"] == 0
+    np.testing.assert_allclose(fitted, verts, atol=1e-9)  # the last fold-free state: the pre-aligned template
+    # A start that grows the distance partway (too soft a schedule would) is stopped too.
+    growth = dataclasses.replace(PARAMS, divergence_growth=1.0001, divergence_flipped=1.0)
+    _, summary = nricp(verts, faces, subject + 0.0, faces, growth, (labels, labels), None, verts + (0.0, 0.0, 9.0))
+    assert "diverged" not in summary or summary["diverged"]["reason"] == "surface distance grew"
+
+
+def test_register_reports_landmarks_and_refuses_a_wild_spline_start():
+    verts, faces, labels = labelled((30.0, 24.0, 20.0), subdivisions=3)
+    rotation = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    subject = (verts * (1.1, 0.9, 1.0)) @ rotation.T + (4.0, 0.0, -2.0)
+    fitted, report = register(verts, faces, subject, faces, PARAMS, np.random.default_rng(0), labels, labels)
+    accept(report, PARAMS)
+    assert "apex" in report["landmarks_dropped"]  # round ventricle beside its rv
+    assert report["landmark_error_mm"] <= report["landmark_start_error_mm"] + PARAMS.landmark_tolerance_mm
+    assert set(report["landmark_confidence"]) == set(report["landmarks"])
+
+
+def test_the_groupwise_template_leaves_out_a_fit_far_from_the_others():
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    base, faces = sphere.vertices * (30.0, 22.0, 18.0), np.asarray(sphere.faces)
+    rng = np.random.default_rng(0)
+    fits = [base * (1 + rng.normal(0, 0.03, 3)) for _ in range(5)]
+    runaway = base.copy()
+    runaway[: len(base) // 2] *= 4.0  # a diverged fit: half of it blown out
+    shapes = np.stack([*fits, runaway])
+    _, plain = mean_template(shapes, faces, base, 10)
+    assert plain["movement_mm"] > 5.0  # the runaway drags the plain mean
+    verts, report = mean_template(shapes, faces, base, 10, max_distance_mm=10.0)
+    assert report["left_out"] == [5] and report["movement_mm"] < 2.0
+    assert max(report["distance_to_fits_mm"][:5]) < 2.0 and report["distance_to_fits_mm"][5] > 10.0
+    with pytest.raises(MeshError, match="6 of 6 fits lie farther than 0.01 mm"):
+        mean_template(shapes, faces, base, 10, max_distance_mm=0.01)
+
+
+@pytest.mark.parametrize("field, value", [("divergence_growth", 1.0), ("divergence_flipped", 0.0),
+                                          ("retry_stiffening", 0.5), ("groupwise_max_distance_mm", 0.0),
+                                          ("landmark_outlier_mm", 0.0), ("landmark_tolerance_mm", -1.0)])
+def test_new_params_reject_bad_values_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=f"^{field}: "):
+        RegistrationParams(**{field: value})
