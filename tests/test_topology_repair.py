@@ -20,6 +20,7 @@ from meshsar_builder.geometry.label_repair import (
 from meshsar_builder.geometry.meshing import MeshingParams, iso_grid, labels_to_surface
 from meshsar_builder.geometry.phantom_defects import DEFECTS, add_defects
 from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import MeshError
 
 from .test_meshing import canonical_whole_heart
 
@@ -113,7 +114,7 @@ def test_clean_labels_fills_holes_drops_islands_and_relabels_enclosed_ones():
     labels[(X - 19) ** 2 + Y**2 + Z**2 <= 2**2] = S["lv"]  # a detached LV island
     labels[(X + 5) ** 2 + Y**2 + Z**2 <= 2**2] = S["myo"]  # a myocardium island inside the LV
     labels[(X - 19) ** 2 + (Y - 9) ** 2 + Z**2 <= 6**2] = S["myo"]  # the myocardium itself
-    out, record = clean_labels(labels, ONE_MM, 0.05)
+    out, record = clean_labels(labels, 0.05)
     assert (out[X**2 + Y**2 + Z**2 <= 3**2] == S["lv"]).all()
     assert (out[(X - 19) ** 2 + Y**2 + Z**2 <= 1] == 0).all()
     assert (out[(X + 5) ** 2 + Y**2 + Z**2 <= 1] == S["lv"]).all()  # enclosed: takes the LV's label
@@ -235,3 +236,13 @@ def test_a_whole_heart_with_all_real_defects_meshes_genus0(seed):
     assert figures["surface_shift_mm"] <= 0.5
     for handle in figures["handles"]:  # each located, with the structures around it
         assert handle["structures"] and len(handle["position_mm"]) == 3
+
+
+def test_a_handle_left_is_located(monkeypatch):
+    """When no cut or fill removes a handle, the failure says where it is and what is around it."""
+    import meshsar_builder.geometry.meshing as meshing
+
+    monkeypatch.setattr(meshing, "correct_handles", lambda solid, depth, six: (solid, []))
+    labels = torus(18, 6).astype(np.uint8) * S["lv"]
+    with pytest.raises(MeshError, match=r"handles left at \['\[-?\d+\.\d, -?\d+\.\d, -?\d+\.\d\] mm \(lv\)'"):
+        labels_to_surface(labels, np.eye(4), ["lv"], MeshingParams(), name="ring")

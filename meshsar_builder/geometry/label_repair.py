@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+from skimage.measure import euler_number
 
 from meshsar_builder.geometry.digital_topology import ball_core, filled_solid
 from meshsar_builder.geometry.structures import STRUCTURES
@@ -65,40 +66,40 @@ def _present(labels: np.ndarray) -> list[str]:
     return [_NAMES[i] for i in ids if i in _NAMES]
 
 
-def clean_labels(labels: np.ndarray, voxel_mm: np.ndarray, island_fraction: float) -> tuple[np.ndarray, dict]:
+def clean_labels(labels: np.ndarray, island_fraction: float) -> tuple[np.ndarray, dict]:
     """Fill each label's enclosed holes and drop its islands smaller than `island_fraction` of it.
 
-    labels : (X, Y, Z) uint8 canonical ids, voxel_mm : (3,). Returns the cleaned labels and
-    {structure: {"holes_filled", "islands_dropped", "island_voxels"}} for structures changed.
-    A hole is background enclosed by the label alone; an island is a 26-connected component.
-    A dropped island enclosed by other labels takes the label that surrounds it most, else it
-    becomes background.
+    labels : (X, Y, Z) uint8 canonical ids. Returns the cleaned labels and {structure:
+    {"holes_filled", "islands_dropped", "island_voxels"}} for structures changed. A hole is
+    background enclosed by the label alone; an island is a 26-connected component other than
+    the largest. A dropped island enclosed by other labels takes the label that surrounds it
+    most, else it becomes background.
     """
     out = labels.copy()
     record = {}
     full = np.ones((3, 3, 3), bool)
     for name in _present(labels):
         sid = STRUCTURES[name]
-        mask = out == sid
-        holes = ndimage.binary_fill_holes(mask) & (out == 0)
+        holes = ndimage.binary_fill_holes(out == sid) & (out == 0)
         out[holes] = sid
-        comp, n = ndimage.label(out == sid, structure=full)
+        comp, _ = ndimage.label(out == sid, structure=full)
         sizes = np.bincount(comp.ravel())[1:]
-        small = np.flatnonzero(sizes < island_fraction * sizes.sum()) + 1
-        dropped = 0
-        for c in small:
-            if sizes[c - 1] == sizes.max():
+        boxes = ndimage.find_objects(comp)
+        dropped = voxels = 0
+        for c in np.flatnonzero(sizes < island_fraction * sizes.sum()) + 1:
+            if c == sizes.argmax() + 1:
                 continue
-            island = comp == c
+            # Work in the island's box, one voxel wider: real maps have hundreds of islands.
+            box = tuple(slice(max(b.start - 1, 0), b.stop + 1) for b in boxes[c - 1])
+            island = comp[box] == c
+            sub = out[box]
             ring = ndimage.binary_dilation(island, structure=full) & ~island
-            around = np.bincount(out[ring], minlength=max(STRUCTURES.values()) + 1)
+            around = np.bincount(sub[ring], minlength=max(STRUCTURES.values()) + 1)
             around[sid] = 0
-            # enclosed: no background voxel on its border
-            out[island] = around.argmax() if around[0] == 0 else 0
-            dropped += int(sizes[c - 1])
+            sub[island] = around.argmax() if around[0] == 0 else 0  # enclosed: no background around it
+            dropped, voxels = dropped + 1, voxels + int(sizes[c - 1])
         if holes.any() or dropped:
-            record[name] = {"holes_filled": int(holes.sum()), "islands_dropped": int(sum(sizes[c - 1] != sizes.max() for c in small)),
-                            "island_voxels": dropped}
+            record[name] = {"holes_filled": int(holes.sum()), "islands_dropped": dropped, "island_voxels": voxels}
     return out, record
 
 
@@ -158,14 +159,11 @@ def genus(solid: np.ndarray, six: bool) -> tuple[int, int, int]:
 
     solid : (X, Y, Z) bool. From the Euler characteristic χ = components − handles + cavities.
     """
-    from skimage.measure import euler_number
-
     fg = ndimage.generate_binary_structure(3, 1 if six else 3)
     bg = ndimage.generate_binary_structure(3, 3 if six else 1)
     components = ndimage.label(solid, structure=fg)[1]
     cavities = ndimage.label(np.pad(~solid, 1, constant_values=True), structure=bg)[1] - 1
-    chi = euler_number(solid, connectivity=1 if six else 3)
-    return components + cavities - chi, components, cavities
+    return components + cavities - euler_number(solid, connectivity=1 if six else 3), components, cavities
 
 
 def correct_handles(solid: np.ndarray, depth: np.ndarray, six: bool = True, max_passes: int = 4) -> tuple[np.ndarray, list[dict]]:
@@ -179,9 +177,11 @@ def correct_handles(solid: np.ndarray, depth: np.ndarray, six: bool = True, max_
     The candidates are the connected pieces of the two topology-preserving growths
     (`ball_core`: cuts through each handle at its thinnest; `filled_solid`: a patch across each
     tunnel at its narrowest), each thickened by one voxel. Cheapest first, a candidate is kept
-    only when it removes a handle and leaves one component without cavities.
+    when it removes a handle and leaves one component without cavities. χ is a sum over 2×2×2
+    blocks, so a candidate that cannot raise it is dismissed in its own box; the others are
+    checked on the whole solid.
     """
-    full = np.ones((3, 3, 3), bool)
+    connectivity = 1 if six else 3
     solid = solid.copy()
     handles, _, _ = genus(solid, six)
     changes: list[dict] = []
@@ -191,15 +191,18 @@ def correct_handles(solid: np.ndarray, depth: np.ndarray, six: bool = True, max_
         cuts = solid & ~ball_core(solid, depth, six)
         fills = filled_solid(solid, depth, six) & ~solid
         progress = False
-        for kind, piece in sorted(_pieces(cuts, fills), key=lambda c: c[1].sum()):
-            # One voxel thicker on its own side, so the change holds under either adjacency:
-            # marching cubes may join voxels across a one-voxel cut diagonally.
-            piece = ndimage.binary_dilation(piece, structure=full) & (solid if kind == "cut" else ~solid)
-            trial = solid & ~piece if kind == "cut" else solid | piece
-            h, comps, cav = genus(trial, six)
-            if h < handles and comps == 1 and cav == 0:
+        for kind, box, piece in sorted(_pieces(cuts, fills, solid), key=lambda c: c[2].sum()):
+            before = solid[box]
+            after = before & ~piece if kind == "cut" else before | piece
+            if euler_number(after, connectivity) <= euler_number(before, connectivity):
+                continue  # removes no handle: skip the whole-solid check
+            trial = solid.copy()
+            trial[box] = after
+            h, components, cavities = genus(trial, six)
+            if h < handles and components == 1 and cavities == 0:
                 solid, handles, progress = trial, h, True
-                changes.append({"kind": kind, "voxels": int(piece.sum()), "index": np.argwhere(piece).mean(axis=0).tolist()})
+                changes.append({"kind": kind, "voxels": int(piece.sum()),
+                                "index": (np.argwhere(piece).mean(axis=0) + [b.start for b in box]).tolist()})
                 if handles == 0:
                     break
         if not progress:
@@ -207,10 +210,14 @@ def correct_handles(solid: np.ndarray, depth: np.ndarray, six: bool = True, max_
     return solid, changes
 
 
-def _pieces(cuts: np.ndarray, fills: np.ndarray):
-    """(kind, (X, Y, Z) bool) for each 26-connected piece of the cuts and of the fills."""
+def _pieces(cuts: np.ndarray, fills: np.ndarray, solid: np.ndarray):
+    """(kind, box, (box) bool) for each 26-connected piece of the cuts and of the fills, one voxel
+    thicker on its own side (marching cubes may join voxels across a one-voxel cut diagonally),
+    in its box two voxels wider."""
     full = np.ones((3, 3, 3), bool)
-    for kind, mask in (("cut", cuts), ("fill", fills)):
-        comp, n = ndimage.label(mask, structure=full)
-        for c in range(1, n + 1):
-            yield kind, comp == c
+    for kind, mask, side in (("cut", cuts, solid), ("fill", fills, ~solid)):
+        comp, _ = ndimage.label(mask, structure=full)
+        for c, b in enumerate(ndimage.find_objects(comp), start=1):
+            box = tuple(slice(max(s.start - 2, 0), min(s.stop + 2, n)) for s, n in zip(b, mask.shape))
+            piece = ndimage.binary_dilation(comp[box] == c, structure=full) & side[box]
+            yield kind, box, piece

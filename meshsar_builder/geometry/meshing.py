@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from skimage import measure
 from skimage.graph import MCP_Geometric
 
+from meshsar_builder.geometry.digital_topology import ball_core
 from meshsar_builder.geometry.label_repair import (
     CHAMBERS, clean_labels, correct_handles, fill_junction_walls, separate_contacts)
 from meshsar_builder.geometry.structures import STRUCTURES
@@ -223,7 +224,7 @@ def labels_to_surface(
     record["handles"] = handles
     if not ok:
         raise MeshError(f"{name}: surface is not closed genus 0 (euler={euler}, watertight={watertight}) after "
-                        f"topology repair; {_summary(record)}")
+                        f"topology repair; handles left at {_handles_left(grid, repaired)}; {_summary(record)}")
     record.update(_repair_figures(chosen, np.where(walls, 0, repaired), handles, gaps, verts, faces, plain, affine, params))
     _check_repair(record, name, params)
     return Surface(verts, faces, nearest_labels(verts, repaired, repaired > 0, affine), record)
@@ -248,7 +249,7 @@ def repair_labels(labels: np.ndarray, voxel_mm: np.ndarray,
     record of each step, and (X, Y, Z) bool masks of the voxels the contact gaps removed and of
     the wall voxels filled between joined structures.
     """
-    cleaned, islands = clean_labels(labels, voxel_mm, params.island_fraction)
+    cleaned, islands = clean_labels(labels, params.island_fraction)
     walled, walls, wall_mask = fill_junction_walls(cleaned, voxel_mm, params.wall_mm)
     separated, contacts, gaps = separate_contacts(walled, voxel_mm, params.gap_mm)
     return separated, {"labels": islands, "walls_filled": walls, "contacts_cut": contacts}, gaps, wall_mask
@@ -276,6 +277,23 @@ def _correct_grid_handles(grid: IsoGrid, labels: np.ndarray, six: bool) -> list[
         change["structures"] = _structures_near(world, labels, grid.affine)
         change["volume_mm3"] = round(change["voxels"] * grid.spacing_mm**3, 1)
     return changes
+
+
+def _handles_left(grid: IsoGrid, labels: np.ndarray, most: int = 5) -> list[str]:
+    """Where the meshing grid's solid still has handles: the thinnest cut through each (the
+    pieces ball_core leaves out, largest first), with the structures around it."""
+    structure = ndimage.generate_binary_structure(3, 3)
+    comp, n = ndimage.label(grid.values < 0, structure=structure)
+    if n == 0:
+        return []
+    solid = ndimage.binary_fill_holes(comp == np.bincount(comp.ravel())[1:].argmax() + 1)
+    cuts, count = ndimage.label(solid & ~ball_core(solid, -grid.values.astype(np.float64), six=False), structure=structure)
+    sizes = np.bincount(cuts.ravel())[1:]
+    found = []
+    for c in np.argsort(sizes)[::-1][:most] + 1:
+        world = grid.to_world(np.argwhere(cuts == c).mean(axis=0)[None])[0]
+        found.append(f"{[round(float(x), 1) for x in world]} mm ({'/'.join(_structures_near(world, labels, grid.affine))})")
+    return found
 
 
 def _structures_near(point: np.ndarray, labels: np.ndarray, affine: np.ndarray, radius_mm: float = 4.0) -> list[str]:
