@@ -116,7 +116,7 @@ def tiny_radar_setup(dtype):
     return verts, faces, target, positions, centres, freqs
 
 
-@pytest.mark.parametrize("mode", L.RADAR_MODES)
+@pytest.mark.parametrize("mode", L.ECHO_MODES)
 def test_radar_loss_gradcheck(mode):
     verts, faces, target, positions, centres, freqs = tiny_radar_setup(torch.float64)
     verts.requires_grad_(True)
@@ -125,7 +125,7 @@ def test_radar_loss_gradcheck(mode):
         (verts,), eps=1e-6, atol=1e-7, rtol=1e-4)
 
 
-@pytest.mark.parametrize("mode", L.RADAR_MODES)
+@pytest.mark.parametrize("mode", L.ECHO_MODES)
 def test_radar_loss_vanishes_on_its_own_echo(mode):
     verts, faces, _, positions, centres, freqs = tiny_radar_setup(torch.float64)
     own = torch.stack([echo_torch(verts, faces, positions[k], freqs, TINY, centre=centres[k],
@@ -135,7 +135,7 @@ def test_radar_loss_vanishes_on_its_own_echo(mode):
         L.radar_loss(verts[None], faces, own, positions, centres, freqs, TINY, "phase")
 
 
-@pytest.mark.parametrize("mode", L.RADAR_MODES)
+@pytest.mark.parametrize("mode", L.ECHO_MODES)
 def test_radar_loss_matches_a_loop_over_samples_and_views(mode):
     verts, faces, target, positions, centres, freqs = tiny_radar_setup(torch.float64)
     batch = torch.stack([verts, 0.97 * verts])  # (2, n, 3)

@@ -13,7 +13,8 @@ import trimesh
 import meshsar_builder.radar.params as RP
 
 torch = pytest.importorskip("torch")
-from meshsar_builder.trainer.losses import RADAR_MODES, radar_loss  # noqa: E402
+from meshsar_builder.trainer.losses import ECHO_MODES as RADAR_MODES  # noqa: E402
+from meshsar_builder.trainer.losses import radar_loss  # noqa: E402
 
 AXES_MM = np.array([50.0, 40.0, 60.0])  # ellipsoid semi-axes, a heart-sized body
 SCALES = (0.9, 0.95, 0.98, 0.99, 1.0, 1.01, 1.02, 1.05, 1.1)

@@ -18,6 +18,7 @@ from meshsar_builder.trainer import losses as L
 from meshsar_builder.trainer.model import ModelConfig
 
 RADAR_BALANCES = ("gradient", "none")
+RADAR_TARGETS = ("clean", "recorded")
 LR_SCHEDULES = ("constant", "cosine")
 
 
@@ -54,7 +55,13 @@ class LossConfig:
 
 @dataclass(frozen=True)
 class RadarLossConfig:
-    """[radar_loss]: L1 between the prediction's differentiable echo and the stored echo."""
+    """[radar_loss]: the radar term (DESIGN section 10; docs/trainer.md "The radar loss").
+
+    mode "focused" (default.toml's): 1 - cosine of blurred, debiased power volumes, the target
+    focused from the loss-grid echo (echo_clean, or the recorded noisy echo) and the
+    prediction from an image-domain splat of the predicted mesh (radar/focused.py).
+    "raw" (the paper's) and "profile": the relative L1 on the stored decimated echo.
+    """
 
     weight: float = 0.1  # 0: the no-radar-loss ablation
     warmup_epochs: int = 20  # the weight is 0 before this epoch
@@ -69,7 +76,16 @@ class RadarLossConfig:
     # ellipsoid against its Embree echo: raw jumps 0.65 -> 1.95 within 1 mm (phase wraps), profile
     # varies smoothly with its minimum within 2 mm and a basin of about -8..+4 mm.
     mode: str = "profile"
-    beta: float = 10.0  # steepness of the soft visibility
+    beta: float = 10.0  # steepness of the soft visibility (raw, profile)
+    # focused: the target's echo, "clean" (echo_clean) or "recorded" (echo_clean plus the
+    # build's noise regenerated from noise_seed; its expected image power is subtracted)
+    target: str = "clean"
+    focused_lateral_mm: float = 2.5  # voxel size across the view
+    focused_range_mm: float = 5.0  # voxel size along the view
+    focused_blur_mm: float = 3.0  # Gaussian blur of both volumes
+    # focused mode: heat-kernel steps applied to its per-vertex gradient (0: none): the raw
+    # gradient is high-frequency (cosine to the true direction <= 0.03, issue 28)
+    smooth_iterations: int = 0
     antennas: int = 0  # antennas per view drawn each step (0: every antenna of the echo grid)
     stage: int = -1  # whose mesh is compared (Python index over stages)
 
@@ -78,6 +94,12 @@ class RadarLossConfig:
             raise ValueError(f"mode: must be one of {', '.join(L.RADAR_MODES)}, got {self.mode!r}")
         if self.balance not in RADAR_BALANCES:
             raise ValueError(f"balance: must be one of {', '.join(RADAR_BALANCES)}, got {self.balance!r}")
+        if self.target not in RADAR_TARGETS:
+            raise ValueError(f"target: must be one of {', '.join(RADAR_TARGETS)}, got {self.target!r}")
+        if min(self.focused_lateral_mm, self.focused_range_mm) <= 0 or self.focused_blur_mm < 0 \
+                or self.smooth_iterations < 0:
+            raise ValueError("focused_lateral_mm, focused_range_mm: must be > 0; focused_blur_mm, "
+                             "smooth_iterations: >= 0")
         if self.weight < 0 or self.warmup_epochs < 0 or self.ramp_epochs < 0 or self.antennas < 0 or self.beta <= 0:
             raise ValueError("weight, warmup_epochs, ramp_epochs, antennas: must be >= 0; beta: > 0")
 

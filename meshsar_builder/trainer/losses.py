@@ -15,7 +15,9 @@ import torch
 from meshsar_builder.radar.differentiable import aperture_probes, echo_torch
 from meshsar_builder.radar.params import RadarParams
 
-RADAR_MODES = ("raw", "profile")
+RADAR_MODES = ("focused", "raw", "profile")
+# focused: blurred, debiased power volumes (radar/focused.py); raw and profile: L1 on the echo.
+ECHO_MODES = ("raw", "profile")
 
 
 # ---------------------------------------------------------------- topology
@@ -142,8 +144,8 @@ def radar_loss(verts: torch.Tensor, faces: torch.Tensor, echo: torch.Tensor, pos
     ones); the loss is the mean over samples and views, 0 on a perfect match and
     about 0.5-1.2 for a sphere against a heart.
     """
-    if mode not in RADAR_MODES:
-        raise ValueError(f"mode: must be one of {', '.join(RADAR_MODES)}, got {mode!r}")
+    if mode not in ECHO_MODES:
+        raise ValueError(f"mode: must be one of {', '.join(ECHO_MODES)}, got {mode!r}")
     terms = []
     for v in range(echo.shape[1]):
         predicted = echo_torch(verts, faces, positions[v], freqs, radar, beta=beta, centre=centres[v],
@@ -154,3 +156,52 @@ def radar_loss(verts: torch.Tensor, faces: torch.Tensor, echo: torch.Tensor, pos
         error = (predicted - target).abs().flatten(1).mean(1)  # (B,)
         terms.append(error / target.abs().flatten(1).mean(1).clamp_min(1e-30))
     return torch.stack(terms).mean()
+
+
+# ---------------------------------------------------------------- gradient smoothing
+
+
+class _SmoothGradient(torch.autograd.Function):
+    """Identity forward; backward diffuses the vertex gradient over the mesh (heat-kernel filter)."""
+
+    @staticmethod
+    def forward(ctx, verts, edges, iterations):
+        ctx.save_for_backward(edges)
+        ctx.iterations = iterations
+        return verts.view_as(verts)
+
+    @staticmethod
+    def backward(ctx, grad):
+        edges, = ctx.saved_tensors
+        return smooth_on_mesh(grad, edges, ctx.iterations), None, None
+
+
+def smooth_on_mesh(values: torch.Tensor, edges: torch.Tensor, iterations: int) -> torch.Tensor:
+    """`iterations` steps of v <- (v + mean of neighbours) / 2 over (..., n, F): a discrete heat kernel.
+
+    The total (sum over vertices, weighted by degree) is kept up to the degree's
+    variation; a field's features narrower than about sqrt(iterations) edges are removed.
+    """
+    n = values.shape[-2]
+    for _ in range(iterations):
+        values = 0.5 * (values + neighbour_mean(values, edges, n))
+    return values
+
+
+def smooth_gradient(verts: torch.Tensor, edges: torch.Tensor, iterations: int) -> torch.Tensor:
+    """verts itself, through which gradients flow back smoothed on the mesh (smooth_on_mesh); 0: no-op."""
+    if iterations <= 0 or not verts.requires_grad:
+        return verts
+    return _SmoothGradient.apply(verts, edges, iterations)
+
+
+def focused_radar_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup) -> torch.Tensor:
+    """The focused radar loss (radar/focused.py focused_loss): 1 - cosine of blurred power volumes.
+
+    verts (B, n, 3) mm; targets (B, V, S, H, W) float, setup.target of each sample's
+    loss-grid echo (echo_clean, or the recorded echo with its noise_sigma); setup a
+    FocusedSetup for the views in use. 0 on a perfect match, up to 1 (2 for anti-correlated).
+    """
+    from meshsar_builder.radar.focused import focused_loss
+
+    return focused_loss(verts, faces, targets, setup)

@@ -30,7 +30,7 @@ import io
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -78,6 +78,44 @@ class DatasetGeometry:
     centres: np.ndarray
     freqs: np.ndarray
     radar: RadarParams
+    # the build's full radar (loss grid included), for the focused loss; None for format-1 indexes
+    full_radar: RadarParams | None = None
+    _focused: dict = field(default_factory=dict, repr=False)  # FocusedParams -> FocusedSetup
+    _targets: dict = field(default_factory=dict, repr=False)  # (params, target, sample id) -> (V, S, H, W)
+
+    def focused_setup(self, params):
+        """The FocusedSetup of the views in use for FocusedParams `params` (built once: ~1-10 s)."""
+        from meshsar_builder.radar.focused import FocusedSetup
+
+        if self.full_radar is None:
+            raise InputError("[radar_loss] mode = \"focused\" needs a build with a loss grid (shards format 2); "
+                             "rebuild the data, or use mode = \"raw\" or \"profile\"")
+        if params not in self._focused:
+            self._focused[params] = FocusedSetup(self.full_radar, self.view_names, params)
+        return self._focused[params]
+
+    def focused_targets(self, batch: dict, params, target: str) -> torch.Tensor:
+        """(B, V, S, H, W) float32 targets of a batch, each sample's focused once and kept (by sample id).
+
+        batch["radar_targets"], when given, is used as it is (the trainer benchmark's synthetic batch).
+        """
+        if "radar_targets" in batch:
+            return batch["radar_targets"]
+        setup = self.focused_setup(params)
+        out = []
+        for k, sid in enumerate(batch["sample_id"]):
+            key = (params, target, sid)
+            if key not in self._targets:
+                if target == "clean":
+                    echo, sigma = batch["echo_clean"][k][self.view_index], 0.0
+                else:
+                    if "echo_noisy" not in batch:
+                        raise InputError('[radar_loss] target = "recorded": the batch has no echo_noisy')
+                    echo = batch["echo_noisy"][k][self.view_index]
+                    sigma = batch["noise_sigma"][k][self.view_index].numpy()
+                self._targets[key] = torch.from_numpy(setup.target(echo.numpy(), sigma))
+            out.append(self._targets[key])
+        return torch.stack(out)
 
     @classmethod
     def from_index(cls, index: dict, views: tuple[str, ...] = ()) -> "DatasetGeometry":
@@ -96,8 +134,14 @@ class DatasetGeometry:
             fov_mm=float(index["fov_mm"]),
             positions=np.array([grid["positions_mm"][v] for v in chosen], dtype=np.float64),
             centres=float(r["z0_mm"]) * frames[:, 2], freqs=np.array(grid["frequencies_hz"], dtype=np.float64),
-            radar=radar,
+            radar=radar, full_radar=_full_radar(index),
         )
+
+
+def _full_radar(index: dict) -> RadarParams | None:
+    from meshsar_builder.radar.focused import radar_from_index
+
+    return radar_from_index(index) if "loss_grid" in index and "loss_decimation" in index["radar"] else None
 
 
 def validation_split(root: Path, index: dict, split_seed_: int, fraction: float) -> tuple[list[str], list[str]]:
@@ -171,7 +215,20 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
             terms[f"{name}_s{k}"] = weight * value
     for name in LOSS_TERMS:
         terms[name] = sum(terms[f"{name}_s{k}"] for k in range(len(meshes)))
-    if radar_weight > 0:
+    if radar_weight > 0 and config.radar_loss.mode == "focused":
+        rc = config.radar_loss
+        params = focused_params(rc)
+        targets = geometry.focused_targets(batch, params, rc.target).to(device)
+        topo = model.topology(rc.stage)
+        verts = meshes[rc.stage][1]
+        smoothed = L.smooth_gradient(verts.float(), topo["edges"], rc.smooth_iterations)
+        relative = L.focused_radar_loss(smoothed, topo["faces"], targets, geometry.focused_setup(params))
+        terms["radar_l1"] = relative.detach()
+        if rc.balance == "gradient" and torch.is_grad_enabled() and verts.requires_grad:
+            terms["radar"] = radar_weight * balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
+        else:
+            terms["radar"] = radar_weight * relative
+    elif radar_weight > 0:
         rc = config.radar_loss
         echo = batch["echo"][:, geometry.view_index]
         echo = echo.reshape(*echo.shape[:2], -1, echo.shape[-1])  # (B, V, M, Ef), rows as positions_mm
@@ -189,6 +246,13 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
             terms["radar"] = radar_weight * relative
     terms["total"] = sum(terms[name] for name in (*LOSS_TERMS, "radar"))
     return terms
+
+
+def focused_params(rc):
+    """The FocusedParams of a [radar_loss] table."""
+    from meshsar_builder.radar.focused import FocusedParams
+
+    return FocusedParams(lateral_mm=rc.focused_lateral_mm, range_mm=rc.focused_range_mm, blur_mm=rc.focused_blur_mm)
 
 
 def balanced(radar: torch.Tensor, geometric: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:
@@ -433,7 +497,8 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     index = read_index(data)
     geometry = DatasetGeometry.from_index(index, config.data.views)
     train_ids, val_ids = validation_split(data, index, seed_, config.data.val_fraction)
-    every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels))
+    every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels),
+                           noisy_loss_echo=config.radar_loss.mode == "focused" and config.radar_loss.target == "recorded")
     train_set, val_set = Subset(every, train_ids), Subset(every, val_ids)
     state = load_checkpoint(run / CHECKPOINT, device) if (run / CHECKPOINT).exists() else None
     if state is not None and not same_run(state["config_text"], config):
