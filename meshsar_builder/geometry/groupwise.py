@@ -13,24 +13,31 @@ DESIGN section 3). A plain mean of clean meshes can still fold where thin parts 
 disagree between subjects, so it is Taubin-smoothed, a step at a time, until no face
 intersects another or turned over against the previous template.
 
-The register stage runs the rounds as passes of parallel items (stages/register.py);
-register_groupwise here is the same procedure in one process (bench, tests).
+The register stage runs the rounds as passes of parallel items (stages/register.py: a plan
+and a per-item call); the files of those rounds are made here (seed_template,
+groupwise_template, publish, fit_subject, write_report). register_groupwise here is the same
+procedure in one process (bench, tests).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
+from threadpoolctl import threadpool_limits
 
+from meshsar_builder.geometry.meshfile import read_ply, write_ply
+from meshsar_builder.geometry.meshing import transfer_labels
 from meshsar_builder.geometry.nricp import flipped_faces
-from meshsar_builder.geometry.registration import accept, register
+from meshsar_builder.geometry.registration import accept, choose_template, register
 from meshsar_builder.geometry.registration_params import RegistrationParams
-from meshsar_builder.geometry.remesh import self_intersecting_faces
+from meshsar_builder.geometry.remesh import self_intersecting_faces, simplify
 from meshsar_builder.geometry.ssm import procrustes_align, rigid_fit
 from meshsar_builder.pipeline.errors import MeshError
+from meshsar_builder.pipeline.io import read_json, sha256_file, write_bytes, write_json
 
 # Taubin's lambda|mu pair of the remesh stage: a low-pass filter that barely shrinks.
 TAUBIN_LAMBDA, TAUBIN_MU = 0.5, -0.53
@@ -180,3 +187,133 @@ def register_groupwise(
         templates.append(t_verts)
         moved, round_ = summary["movement_mm"], round_ + 1
         rounds[-1]["next_template"] = summary
+
+
+def resolve_template(name: str, subjects: dict[str, dict]) -> str:
+    """`median`, an item id, or a subject name (as in the source) -> item id."""
+    if name == "median" or name in subjects:
+        return name
+    matches = [i for i, rec in subjects.items() if rec["subject"] == name]
+    if len(matches) != 1:
+        raise MeshError(f"registration.template: {name!r} names {len(matches)} of the registered subjects")
+    return matches[0]
+
+
+def _current(meta, want: dict) -> bool:
+    return meta.exists() and {k: read_json(meta).get(k) for k in want} == want
+
+
+def seed_template(folder: Path, remeshed: Path, subjects: Mapping[str, dict], params: RegistrationParams) -> str:
+    """Write <folder>/template-0.ply (the reference subject, from the remeshed surfaces in
+    `remeshed`; subjects: remesh records by item id) unless it is up to date; return its path."""
+    volumes = {i: rec["volume_ml"] for i, rec in subjects.items()}
+    chosen = choose_template(volumes, resolve_template(params.template, subjects))
+    source = remeshed / f"{chosen}.ply"
+    want = {"round": 0, "subject": chosen, "source_sha256": sha256_file(source),
+            "template_vertices": params.template_vertices}
+    path, meta = folder / "template-0.ply", folder / "template-0.json"
+    if path.exists() and _current(meta, want):
+        return str(path)
+    verts, faces, labels = read_ply(source)
+    t_verts, t_faces = simplify(verts, faces, params.template_vertices)
+    write_ply(path, t_verts, t_faces, transfer_labels(verts, labels, t_verts))
+    write_json(meta, {**want, "n_vertices": len(t_verts), "n_faces": len(t_faces), "volumes_ml": volumes})
+    return str(path)
+
+
+def groupwise_template(folder: Path, round_: int, fits: Mapping[str, dict], params: RegistrationParams) -> tuple[str, float]:
+    """Write <folder>/template-<round_>.ply, the mean of the previous round's fits (records by
+    item id), unless it is up to date; return its path and its movement from the previous one (mm).
+    The mean is checked against the fits it averages (mean_template's max_distance_mm)."""
+    previous = folder / f"template-{round_ - 1}.ply"
+    want = {"round": round_, "previous_sha256": sha256_file(previous),
+            "fits": {i: rec["outputs"][f"{i}.ply"] for i, rec in fits.items()},
+            "smoothing": params.groupwise_smoothing, "max_distance_mm": params.groupwise_max_distance_mm}
+    path, meta = folder / f"template-{round_}.ply", folder / f"template-{round_}.json"
+    if path.exists() and _current(meta, want):
+        return str(path), read_json(meta)["movement_mm"]
+    t_verts, t_faces, t_labels = read_ply(previous)
+    shapes = np.stack([read_ply(folder / f"{i}.ply")[0] for i in fits])
+    verts, report = mean_template(shapes, t_faces, t_verts, params.groupwise_smoothing, params.groupwise_max_distance_mm)
+    ids = list(fits)
+    report["left_out"] = [ids[k] for k in report["left_out"]]
+    report["distance_to_fits_mm"] = dict(zip(ids, report["distance_to_fits_mm"]))
+    write_ply(path, verts, t_faces, t_labels)
+    write_json(meta, {**want, **report})
+    return str(path), report["movement_mm"]
+
+
+def publish(folder: Path, template: str, round_: int) -> None:
+    """<folder>/template.ply: the last round's template (only rewritten when it changed)."""
+    data = Path(template).read_bytes()
+    path = folder / "template.ply"
+    if not path.exists() or path.read_bytes() != data:
+        write_bytes(path, data)
+    write_json(folder / "template.json", {**read_json(f"{template[:-4]}.json"), "round": round_,
+                                          "template": f"template-{round_}.ply"})
+
+
+def fit_subject(subject_path: str, template_path: str, out_path: Path, params: RegistrationParams,
+                rng: np.random.Generator, final: bool) -> dict:
+    """One item of a round: register the template at template_path to the subject surface at
+    subject_path, judge it (accept; label agreement only when `final`), write the fit (the
+    template's faces and labels on the fitted vertices) to out_path; return the fit's report."""
+    s_verts, s_faces, s_labels = read_ply(subject_path)
+    t_verts, t_faces, t_labels = read_ply(template_path)
+    fitted, report = register(t_verts, t_faces, s_verts, s_faces, params, rng, t_labels, s_labels)
+    accept(report, params, correspondence=final)
+    write_ply(out_path, fitted, t_faces, t_labels)
+    return report
+
+
+def _round_summary(records: list[dict], planned: int) -> dict:
+    fits = [rec["fit"] for rec in records]
+    structures = sorted({s for f in fits for s in f.get("label_agreement_by_structure", {})})
+    by_structure = {s: [f["label_agreement_by_structure"][s] for f in fits if s in f.get("label_agreement_by_structure", {})]
+                    for s in structures}
+    return {
+        "registered": len(records),
+        "failed": planned - len(records),
+        "fit_mean_mm": float(np.mean([f["mean_mm"] for f in fits])) if fits else None,
+        "fit_p95_mm": float(np.mean([f["p95_mm"] for f in fits])) if fits else None,
+        # Mean over subjects, and the worst subject, per structure.
+        "label_agreement_by_structure": {s: float(np.mean(v)) for s, v in by_structure.items()},
+        "least_label_agreement_by_structure": {s: float(np.min(v)) for s, v in by_structure.items()},
+        "seconds_per_subject": float(np.mean([rec["seconds"] for rec in records])) if records else None,
+    }
+
+
+def write_report(folder: Path, records: Mapping[str, dict], planned: int, params: RegistrationParams) -> None:
+    """After the last round: <folder>/groupwise.json, one entry per round (template movement,
+    smoothing, fits accepted, their distances, label agreement and time), from the last round's
+    item records (by item id) and the sidecars of earlier rounds; `planned`: subjects registered.
+
+    Also how far the last round's own mean lies from the template it was fitted to (the
+    movement the next round would have had), so convergence can be judged.
+    """
+    last = next(iter(records.values()))["round"]
+    rounds = []
+    for r in range(last + 1):
+        meta = read_json(folder / f"template-{r}.json")
+        if r < last:  # the fits the next template was made of: this round's accepted ones
+            done = [read_json(folder / f"{i}.json") for i in read_json(folder / f"template-{r + 1}.json")["fits"]]
+        else:
+            done = list(records.values())
+        entry = {"round": r, "template": f"template-{r}.ply", "template_sha256": sha256_file(folder / f"template-{r}.ply")}
+        if r:
+            entry |= {k: meta[k] for k in ("movement_mm", "movement_max_mm", "smoothing_steps",
+                                           "self_intersections", "flipped_faces")}
+        rounds.append(entry | _round_summary(done, planned))
+    residual = None
+    if len(records) >= 2:
+        t_verts, t_faces, _ = read_ply(folder / f"template-{last}.ply")
+        try:
+            with threadpool_limits(limits=1):
+                _, report = mean_template(np.stack([read_ply(folder / f"{i}.ply")[0] for i in records]), t_faces,
+                                          t_verts, params.groupwise_smoothing)
+            residual = {k: report[k] for k in ("movement_mm", "movement_max_mm")}
+        except MeshError as e:  # a report only: the fits stand
+            residual = {"error": str(e)}
+    write_json(folder / "groupwise.json", {"rounds": rounds, "last_round": last, "next_round_movement": residual,
+                                           "converge_mm": params.groupwise_converge_mm,
+                                           "max_rounds": params.groupwise_rounds})

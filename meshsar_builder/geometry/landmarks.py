@@ -34,7 +34,7 @@ from meshsar_builder.geometry.structures import STRUCTURES
 NAMES = {value: name for name, value in STRUCTURES.items()}
 VENTRICLE = (STRUCTURES["lv"], STRUCTURES["myo"])
 APEX_BAND_MM = 2.0
-APEX_MIN_ELONGATION = 1.3
+APEX_MIN_ELONGATION = 1.2
 APEX_MIN_ALIGNMENT = 0.7
 RING_MIN_MM = 20.0
 

@@ -165,6 +165,16 @@ def _prealign_landmarks(
     return matrix
 
 
+# Least ratio of the smallest to the largest singular value of the centred landmarks that
+# steer the spline start: below it they are nearly coplanar and the spline is not used.
+SPLINE_MIN_SPREAD = 0.2
+
+
+def _spread(points: np.ndarray) -> float:
+    values = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return float(values[-1] / max(values[0], 1e-12))
+
+
 def _check_start(
     aligned: np.ndarray, start: np.ndarray, faces: np.ndarray, subject_verts: np.ndarray, subject_faces: np.ndarray,
     params: RegistrationParams,
@@ -304,7 +314,12 @@ def _register_once(
     # each mesh's label boundary runs out (1-2 mm between tessellations of one surface).
     steer = [i for i, key in enumerate(marks[0].keys) if not key.startswith("ring:")] if marks is not None else []
     start_report = {"start": "similarity"}
-    if len(steer) >= 4 and params.landmark_weight > 0:
+    spread = _spread(points[0][steer]) if len(steer) >= 4 else 0.0
+    if len(steer) >= 4 and params.landmark_weight > 0 and spread < SPLINE_MIN_SPREAD:
+        # A spline's affine part through nearly coplanar landmarks (centroids of structures
+        # side by side) is unbounded across their plane.
+        start_report = {"start": f"similarity (landmarks nearly coplanar: spread {spread:.2f})"}
+    elif len(steer) >= 4 and params.landmark_weight > 0:
         start = landmark_warp(aligned, _apply(matrix, points[0][steer]), points[1][steer], params.landmark_smoothing)
         start, start_report = _check_start(aligned, start, template_faces, subject_verts, subject_faces, params)
     fitted, summary = nricp(aligned, template_faces, subject_verts, subject_faces, params, labels,
