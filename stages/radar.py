@@ -3,8 +3,9 @@
 Dataset meshes are the shape model's samples (sources with `use = "ssm"`), the
 samples of external shape models (`kind = "shape_model"` sources) and the
 remeshed meshes of sources with `use = "direct"` (every frame). Each is
-moved to its heart-centred frame (minus the centre of its bounding box) and
-scanned from every view of `[radar]`.
+moved to its heart-centred frame (minus the centre of its bounding box; for the frames
+of one subject, the centre of its ED or first frame's box, shared by all) and scanned
+from every view of `[radar]`.
 
 Outputs: `radar/<sample>.npz` with `sar` (V, C, H, W) float16, `echo`
 (V, Ex, Ey, Ef) complex64, `echo_clean` (V, Lx, Ly, Lf) complex64 (the noise-free echo on
@@ -43,13 +44,38 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
                     "subset": "ssm", "ssm_coeffs": s["coeffs"], "shape_model": rec["shape_model"]}
             out.append((sid, str(ctx.stage_dir("sources") / name / f"{sid}.ply"), meta))
     cohorts = {s.name: s.cohort for s in ctx.recipe.sources if getattr(s, "cohort", "")}
-    for mid, rec in results.of("remesh").items():
-        if rec["use"] == "direct":
-            meta = {k: rec[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")}
-            if rec["source"] in cohorts:  # sources sharing subject names: splits group across them
-                meta["cohort"] = cohorts[rec["source"]]
-            out.append((mid, str(ctx.stage_dir("remesh") / f"{mid}.ply"), {**meta, "subset": "direct"}))
+    direct = {mid: rec for mid, rec in results.of("remesh").items() if rec["use"] == "direct"}
+    reference = reference_frames(direct)
+    for mid, rec in direct.items():
+        meta = {k: rec[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")}
+        if rec["source"] in cohorts:  # sources sharing subject names: splits group across them
+            meta["cohort"] = cohorts[rec["source"]]
+        if rec["frame"] is not None or rec["phase"]:  # a frame: the heart frame of its subject's reference
+            meta["reference_frame"] = reference[mid]
+        out.append((mid, str(ctx.stage_dir("remesh") / f"{mid}.ply"), {**meta, "subset": "direct"}))
     return out
+
+
+def reference_frames(records: dict[str, dict]) -> dict[str, str]:
+    """Each mesh's reference frame: its subject's ED frame, else its first (lowest frame number).
+
+    records : {item id: remesh sidecar}. A subject is (source, subject); a mesh without a frame
+    is its own reference. DESIGN section 3: all frames of a subject share the reference's
+    heart-frame centre, so the motion shows in the images and the aperture does not follow it.
+    """
+    subjects: dict[tuple, list[str]] = {}
+    for mid, rec in records.items():
+        subjects.setdefault((rec["source"], rec["subject"]), []).append(mid)
+    reference = {}
+    for mids in subjects.values():
+        first = min(mids, key=lambda mid: _reference_rank(records[mid], mid))
+        reference.update({mid: first for mid in mids})
+    return reference
+
+
+def _reference_rank(rec: dict, mid: str) -> tuple:
+    """ED first, then numbered frames in order, then the rest by id."""
+    return rec["phase"] != "ED", rec["frame"] is None, rec["frame"] if rec["frame"] is not None else 0, mid
 
 
 def item_params(ctx: Context) -> dict:
@@ -82,13 +108,21 @@ def check(ctx: Context) -> None:
 
 def plan(ctx: Context, results: Results) -> list[Item]:
     params = item_params(ctx)
-    return [Item(sid, (f"{sid}.npz",), inputs=(path,), params=params, data=meta)
-            for sid, path, meta in dataset_meshes(ctx, results)]
+    remeshed = results.of("remesh")
+    items = []
+    for sid, path, meta in dataset_meshes(ctx, results):
+        own = params
+        if "reference_frame" in meta:  # the subject's shared centre: a change of it redoes the frame
+            own = {**params, "center_mm": remeshed[meta["reference_frame"]]["center_mm"]}
+        items.append(Item(sid, (f"{sid}.npz",), inputs=(path,), params=own, data=meta))
+    return items
 
 
 def run(ctx: Context, item: Item) -> dict:
     verts, faces, _ = read_ply(item.inputs[0])
-    center = (verts.min(axis=0) + verts.max(axis=0)) / 2
+    # A frame sits in its subject's reference frame (bounding-box centre of ED or the first
+    # frame); any other mesh in its own.
+    center = np.asarray(item.params["center_mm"]) if "center_mm" in item.params else (verts.min(axis=0) + verts.max(axis=0)) / 2
     rng = item_rng(ctx.recipe.seed, NAME, item.id)
     out = render_sample(verts - center, faces, ctx.recipe.radar, ctx.recipe.images, rng)
     with atomic_path(ctx.stage_dir(NAME) / f"{item.id}.npz") as tmp:
@@ -101,4 +135,5 @@ def run(ctx: Context, item: Item) -> dict:
 
 # Version 2: the physical-optics facet echo and the image-domain noise floor (image_snr_db).
 # Version 3: echo_clean on the loss grid, and noise drawn from a stored uint64 seed per view.
-STAGE = Stage(name=NAME, version=3, plan=plan, run=run, resources=resources, check=check)
+# Version 4: frames of a subject share its ED (or first) frame's centre.
+STAGE = Stage(name=NAME, version=4, plan=plan, run=run, resources=resources, check=check)
