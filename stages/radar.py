@@ -45,7 +45,7 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
             out.append((sid, str(ctx.stage_dir("sources") / name / f"{sid}.ply"), meta))
     cohorts = {s.name: s.cohort for s in ctx.recipe.sources if getattr(s, "cohort", "")}
     direct = {mid: rec for mid, rec in results.of("remesh").items() if rec["use"] == "direct"}
-    reference = reference_frames(direct)
+    reference = reference_frames(direct, cohorts)
     for mid, rec in direct.items():
         meta = {k: rec[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")}
         if rec["source"] in cohorts:  # sources sharing subject names: splits group across them
@@ -56,16 +56,17 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
     return out
 
 
-def reference_frames(records: dict[str, dict]) -> dict[str, str]:
+def reference_frames(records: dict[str, dict], cohorts: dict[str, str] | None = None) -> dict[str, str]:
     """Each mesh's reference frame: its subject's ED frame, else its first (lowest frame number).
 
-    records : {item id: remesh sidecar}. A subject is (source, subject); a mesh without a frame
-    is its own reference. DESIGN section 3: all frames of a subject share the reference's
+    records : {item id: remesh sidecar}; cohorts : {source: cohort} for sources that share
+    subject names (annotated and predicted frames of one patient). A subject is (cohort or
+    source, subject). DESIGN section 3: all frames of a subject share the reference's
     heart-frame centre, so the motion shows in the images and the aperture does not follow it.
     """
     subjects: dict[tuple, list[str]] = {}
     for mid, rec in records.items():
-        subjects.setdefault((rec["source"], rec["subject"]), []).append(mid)
+        subjects.setdefault(((cohorts or {}).get(rec["source"], rec["source"]), rec["subject"]), []).append(mid)
     reference = {}
     for mids in subjects.values():
         first = min(mids, key=lambda mid: _reference_rank(records[mid], mid))

@@ -47,6 +47,8 @@ def test_the_reference_is_ed_else_the_first_frame_per_subject():
     assert reference_frames(records) == {
         "a-f03": "a-f07", "a-f01": "a-f07", "a-f07": "a-f07", "a-p2-f05": "a-p2-f02", "a-p2-f02": "a-p2-f02",
         "b-f01": "b-f01", "c-ES": "c-ED", "c-ED": "c-ED", "still": "still"}
+    # annotated (a) and predicted (b) frames of one cohort: one patient, one reference
+    assert reference_frames(records, {"a": "cohort", "b": "cohort"})["b-f01"] == "a-f07"
 
 
 def test_frames_of_a_subject_are_scanned_in_its_ed_frame(tmp_path):
