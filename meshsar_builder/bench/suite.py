@@ -14,7 +14,10 @@ Parts:
   recipe (`--recipe manifests/phantom_full.toml`), one from-scratch build of it
   against the paper-scale target (bench_recipe);
 - trainer: ms per training step at the default and paper sizes, on the CPU, or
-  with `--device cuda` on a GPU in fp32 and mixed precision (bench_trainer).
+  with `--device cuda` on a GPU in fp32 and mixed precision (bench_trainer);
+- radar-loss: the radar losses' landscapes (minimum, monotone rise, gradient cosine)
+  on 5 samples of a build, $MESHSAR_BENCH_DATA or build/demo (bench/radar_loss.py;
+  $MESHSAR_BENCH_SAMPLES, $MESHSAR_BENCH_LOSSES = focused,raw bound a run).
 Every part runs its measurements with one BLAS thread, like the stages do.
 """
 
@@ -36,7 +39,9 @@ from meshsar_builder.pipeline.io import read_json, write_json
 from meshsar_builder.pipeline.recipe import load
 
 DEMO = Path(__file__).resolve().parents[2] / "manifests" / "demo.toml"
-PARTS = ("radar", "geometry", "pipeline", "trainer")
+PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss")
+# The radar-loss part's build (format 2, with a loss grid): MESHSAR_BENCH_DATA, else build/demo.
+RADAR_LOSS_DATA = "build/demo"
 
 
 def demo_subject(index: int = 0):
@@ -267,9 +272,17 @@ def bench_trainer(out: Path, device: str = "cpu") -> dict:
     return run(out, device)
 
 
+def bench_radar_loss(out: Path) -> dict:
+    from meshsar_builder.bench.radar_loss import run
+
+    losses = tuple(os.environ.get("MESHSAR_BENCH_LOSSES", "focused,raw").split(","))
+    return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA),
+               samples=int(os.environ.get("MESHSAR_BENCH_SAMPLES", "5")), losses=losses)
+
+
 def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
     """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision)."""
     out.mkdir(parents=True, exist_ok=True)
     benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline,
-               "trainer": lambda folder: bench_trainer(folder, device)}
+               "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss}
     return {part: benches[part](out) for part in parts}

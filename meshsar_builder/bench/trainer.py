@@ -2,8 +2,11 @@
 
 A step is forward, every loss, backward and the Adam update, on a synthetic batch
 shaped like the demo dataset (3 views of 2 x 128 x 128 images, a 2,562-vertex
-ellipsoid as ground truth, the default radar's decimated echo). Timed without and
-with the radar term (it is off during the warm-up epochs). Every timing is the
+ellipsoid as ground truth, the default radar's decimated echo, and for the focused
+radar loss each ellipsoid's target volume, made by the loss's own image-domain model:
+the trainer focuses a sample's echo_clean once and keeps it, so no step pays for it).
+Timed without and with the radar term (it is off during the warm-up epochs), and the
+radar term's own forward + backward per sample (`radar_ms_per_sample`). Every timing is the
 minimum of a few repeats after a warm-up step: the machines this runs on are shared.
 On CUDA (`meshsar bench trainer --device cuda`) every timing is also taken with
 mixed precision ([run] amp: float16 autocast and the gradient scaler), and the
@@ -47,8 +50,53 @@ def synthetic_batch(batch_size: int, geometry: DatasetGeometry, radar: RadarPara
     ex, ey = radar.aperture[0] // radar.echo_decimation[0], radar.aperture[1] // radar.echo_decimation[1]
     echo = torch.stack([torch.stack([echo_torch(v, faces, geometry.positions[k], geometry.freqs, radar)
                                      .reshape(ex, ey, -1) for k in range(len(geometry.view_names))]) for v in verts])
-    return {"verts": verts, "faces": [faces] * batch_size, "echo": echo,
-            "sar": torch.rand(batch_size, len(geometry.view_names), 2, 128, 128, generator=torch.Generator().manual_seed(0))}
+    out = {"verts": verts, "faces": [faces] * batch_size, "echo": echo, "sample_id": [str(k) for k in range(batch_size)],
+           "sar": torch.rand(batch_size, len(geometry.view_names), 2, 128, 128, generator=torch.Generator().manual_seed(0))}
+    if geometry.full_radar is not None:
+        from meshsar_builder.trainer.train import focused_params
+
+        setup = geometry.focused_setup(focused_params(load_config(CONFIGS / "default.toml").radar_loss))
+        with torch.no_grad():
+            out["radar_targets"] = torch.stack([torch.stack([setup.predicted(v[None], faces, k)[0]
+                                                             for k in range(len(geometry.view_names))])
+                                                for v in verts])
+    return out
+
+
+def radar_ms_per_sample(config: TrainConfig, geometry: DatasetGeometry, batch: dict) -> float:
+    """Minimum milliseconds per sample of the radar term alone (forward + backward) on the batch's meshes."""
+    from meshsar_builder.trainer import losses as L
+    from meshsar_builder.trainer.model import icosphere_levels
+
+    rc = config.radar_loss
+    levels, faces, _ = icosphere_levels(config.model.template_level)
+    size = config.data.batch_size
+    verts = torch.stack([torch.as_tensor(levels[-1] * 50, dtype=torch.float32) for _ in range(size)])
+    faces_t = torch.as_tensor(faces[-1])
+    edges = torch.as_tensor(L.mesh_edges(faces[-1]))
+    best = np.inf
+    for repeat in range(REPEATS + 1):
+        v = verts.clone().requires_grad_(True)
+        start = time.perf_counter()
+        if rc.mode == "focused":
+            from meshsar_builder.trainer.train import focused_params
+
+            params = focused_params(rc)
+            targets = geometry.focused_targets({k: batch[k][:size] for k in ("radar_targets",)}, params, rc.target)
+            loss = L.focused_radar_loss(L.smooth_gradient(v, edges, rc.smooth_iterations), faces_t, targets,
+                                        geometry.focused_setup(params))
+        else:
+            echo = batch["echo"][:size, geometry.view_index]
+            echo = echo.reshape(*echo.shape[:2], -1, echo.shape[-1])
+            positions = geometry.positions
+            if 0 < rc.antennas < positions.shape[1]:
+                positions, echo = positions[:, : rc.antennas], echo[:, :, : rc.antennas]
+            loss = L.radar_loss(v, faces_t, echo, positions, geometry.centres, geometry.freqs, geometry.radar,
+                                rc.mode, rc.beta)
+        loss.backward()
+        if repeat:
+            best = min(best, time.perf_counter() - start)
+    return 1000 * best / size
 
 
 def step_ms(config: TrainConfig, radar_on: bool, geometry: DatasetGeometry, batch: dict,
@@ -116,6 +164,9 @@ def run(out_dir: str | Path, device: str = "cpu") -> dict:
             entry["steps_per_second_with_radar"] = 1000 / entry["ms_per_step_with_radar"]
             entry["ms_per_sample"] = entry["ms_per_step"] / config.data.batch_size
             entry["radar_step_ratio"] = entry["ms_per_step_with_radar"] / entry["ms_per_step"]
+            if precision == "fp32":
+                entry["radar_mode"] = config.radar_loss.mode
+                entry["radar_ms_per_sample"] = radar_ms_per_sample(config, geometry, batch)
         if "amp" in precisions:
             result[name]["amp_speedup"] = result[name]["ms_per_step"] / result[name]["amp"]["ms_per_step"]
             result[name]["amp_speedup_with_radar"] = (result[name]["ms_per_step_with_radar"]

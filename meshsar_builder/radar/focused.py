@@ -8,7 +8,7 @@ power whose expectation is known or smooth, so this target is unbiased in expect
 
 Prediction (image-domain model, differentiable, no echo): each facet of the predicted mesh
 that the view sees (Embree mask on the detached mesh, as the differentiable echo) splats
-its weight a_k = area_k (lobe / R^2 at the aperture centre) H(s_k) trilinearly into the
+its weight a_k = area_k H(s_k) / R_k^2 (R_k to the aperture centre) trilinearly into the
 voxel grid, where H is the focusing's own aperture window (Hann) at s_k, the point where
 the facet's specular ray (along its normal) meets the aperture plane: a locally flat
 surface is imaged only where its mirror direction reaches the aperture (the k-space
@@ -44,11 +44,16 @@ class FocusedParams:
     range_mm: float = 5.0  # voxel size along w (range resolution of the default scan is ~37 mm)
     half_extent_mm: float = 72.5  # the grid spans +-this about the heart centre on each axis
     blur_mm: float = 3.0  # Gaussian sigma of the blur applied to both volumes (each axis)
+    # facet weight: "specular" (the Hann window at the facet's specular aperture point) or
+    # "diffuse" (lobe / R^2 toward the aperture centre only: rough surfaces glow where seen)
+    reflection: str = "specular"
 
     def __post_init__(self):
         for name in ("lateral_mm", "range_mm", "half_extent_mm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0, got {getattr(self, name)}")
+        if self.reflection not in ("specular", "diffuse"):
+            raise ValueError(f"reflection: must be specular or diffuse, got {self.reflection!r}")
         if self.blur_mm < 0:
             raise ValueError(f"blur_mm: must be >= 0, got {self.blur_mm}")
 
@@ -174,7 +179,7 @@ class FocusedSetup:
         return self._torch[key]
 
     def weights(self, centroids, normals, areas, view: int):
-        """Facet weights a_k (..., F) of one view: area x lobe / R^2 x Hann window at the specular point."""
+        """Facet weights a_k (..., F) of one view: area / R^2 x the Hann window at the specular point (or x lobe: diffuse)."""
         t = self._tensors(centroids.device, centroids.dtype)
         frame = t["frames"][view]
         c = centroids @ frame.T  # (..., F, 3) view coordinates u, v, w
@@ -190,10 +195,12 @@ class FocusedSetup:
         window = torch.where(n[..., 2] > 0, window, torch.zeros_like(window))
         to_centre = torch.stack([-c[..., 0], -c[..., 1], z0 - c[..., 2]], dim=-1)
         r2 = (to_centre * to_centre).sum(-1)
-        cos = ((to_centre * n).sum(-1) / r2.sqrt()).clamp_min(0)
-        radar = self.radar
-        lobe = cos if radar.reflectivity == "po" else (1 - radar.kappa) * cos ** radar.p + radar.kappa * cos
-        return areas * lobe * window * (z0 * z0) / r2, c
+        if self.params.reflection == "diffuse":
+            cos = ((to_centre * n).sum(-1) / r2.sqrt()).clamp_min(0)
+            radar = self.radar
+            window = cos if radar.reflectivity == "po" else (1 - radar.kappa) * cos ** radar.p + radar.kappa * cos
+        # specular: the antenna that sees the facet's mirror reflection sees it at normal incidence (lobe 1)
+        return areas * window * (z0 * z0) / r2, c
 
     def splat(self, coords: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         """Trilinear splat of weights (B, F) at view coordinates coords (B, F, 3) into (B, 2S, H, W) (centred along w)."""
