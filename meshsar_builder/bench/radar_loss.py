@@ -221,7 +221,7 @@ def measure_sample(evaluator, families: Families, faces_np) -> dict:
 
 
 def summarise(per_sample: list[dict]) -> dict:
-    families = per_sample[0].keys()
+    families = [f for f in per_sample[0] if isinstance(per_sample[0][f], dict)]
     minimum = all(s[f]["minimum_met"] for s in per_sample for f in families)
     monotone = all(s[f].get("monotone_met", True) for s in per_sample for f in families)
     cosine = all(s[f].get("cosine_met", True) for s in per_sample for f in families)
@@ -265,6 +265,11 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 5, config_path: st
                           "blur_mm": config.radar_loss.focused_blur_mm},
               "entries": {}}
     per = {f"{loss}_{target}": [] for loss in losses for target in targets}
+    previous = Path(out_dir) / "radar_loss.json"
+    if previous.exists():  # keep the entries of other losses measured earlier on the same build
+        old = json.loads(previous.read_text())
+        if old.get("data") == str(data):
+            result["entries"] = {k: v for k, v in old.get("entries", {}).items() if k not in per}
     for i in range(min(samples, len(dataset))):
         sample = dataset[i]
         verts, faces = sample["verts"].double().numpy(), sample["faces"].numpy()

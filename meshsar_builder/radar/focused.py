@@ -42,7 +42,7 @@ class FocusedParams:
 
     lateral_mm: float = 2.5  # voxel size along u, v
     range_mm: float = 5.0  # voxel size along w (range resolution of the default scan is ~37 mm)
-    half_extent_mm: float = 72.5  # the grid spans +-this about the heart centre on each axis
+    half_extent_mm: float = 75.0  # the grid spans +-this about the heart centre on each axis (60 x 60 x 30)
     blur_mm: float = 3.0  # Gaussian sigma of the blur applied to both volumes (each axis)
     # facet weight: "specular" (the Hann window at the facet's specular aperture point) or
     # "diffuse" (lobe / R^2 toward the aperture centre only: rough surfaces glow where seen)
@@ -68,9 +68,9 @@ def radar_from_index(index: dict) -> RadarParams:
 
 
 def _axis(half: float, step: float) -> np.ndarray:
-    """An odd number of points `step` apart, 0 in the middle, reaching about +-half."""
-    count = 2 * int(round(half / step)) + 1
-    return (np.arange(count) - (count - 1) / 2) * step
+    """2 round(half / step) points `step` apart from -half, 0 at index count // 2 (even sizes: fast FFTs)."""
+    count = 2 * int(round(half / step))
+    return (np.arange(count) - count // 2) * step
 
 
 def _gaussian_transfer(shape, spacing, sigma):
