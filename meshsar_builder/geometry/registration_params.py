@@ -65,8 +65,9 @@ class RegistrationParams:
         than max_mean_mm), or when
     divergence_flipped: this fraction of its faces are turned over against the pre-aligned
         template; it is then retried from the similarity start (no spline) with every
-        stiffness times retry_stiffening and the landmarks left out, and rejected with the
-        figures if that diverges too (accept).
+        stiffness times retry_stiffening, then the softest step again, and the landmarks left
+        out, and rejected with the figures if that diverges too (accept). A fit the fold guard
+        stopped before the schedule's end is retried alike, and the retry kept if it fared better.
     retry_stiffening: see divergence_flipped.
     groupwise_max_distance_mm: a groupwise template (round >= 1) is checked against the fits
         it averages: a fit whose mean vertex distance from the mean (rigidly fitted, scale
