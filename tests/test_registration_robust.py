@@ -132,3 +132,33 @@ def test_the_groupwise_template_leaves_out_a_fit_far_from_the_others():
 def test_new_params_reject_bad_values_naming_the_field(field, value):
     with pytest.raises(ValueError, match=f"^{field}: "):
         RegistrationParams(**{field: value})
+
+
+def test_a_fit_the_fold_guard_stopped_early_is_retried_stiffer_and_the_better_kept(monkeypatch):
+    import meshsar_builder.geometry.registration as registration
+
+    verts, faces, labels = labelled((30.0, 24.0, 20.0), subdivisions=3)
+    calls = []
+
+    def fake_nricp(aligned, faces_, subject_verts, subject_faces, params, labels_=None, landmarks=None, start=None):
+        calls.append((params.stiffness, landmarks is None and start is None))
+        steps = len(params.stiffness)
+        kept = 1 if len(calls) == 1 else steps  # the first attempt stops at step 1, the retry runs through
+        return aligned, {"steps_kept": kept, "steps": steps, "fold_repeats": 7, "stiffened_vertices": 9}
+
+    monkeypatch.setattr(registration, "nricp", fake_nricp)
+    _, report = register(verts, faces, verts * 1.02, faces, PARAMS, np.random.default_rng(0), labels, labels)
+    assert len(calls) == 2 and calls[1][1]  # the retry: no spline start, no landmark term
+    assert calls[1][0] == tuple(4 * a for a in PARAMS.stiffness) + PARAMS.stiffness[-1:]
+    assert report["nricp"]["steps_kept"] == 6 and report["nricp"]["first_attempt"]["steps_kept"] == 1
+    # A retry that fares worse than a first attempt that did not diverge is not kept.
+    calls.clear()
+
+    def worse_retry(aligned, faces_, subject_verts, subject_faces, params, labels_=None, landmarks=None, start=None):
+        calls.append(1)
+        return aligned, {"steps_kept": 2 if len(calls) == 1 else 0, "steps": len(params.stiffness), "fold_repeats": 7,
+                         "stiffened_vertices": 9}
+
+    monkeypatch.setattr(registration, "nricp", worse_retry)
+    _, report = register(verts, faces, verts * 1.02, faces, PARAMS, np.random.default_rng(0), labels, labels)
+    assert report["nricp"]["steps_kept"] == 2 and report["nricp"]["retry_attempt"]["steps_kept"] == 0
