@@ -117,3 +117,27 @@ def test_smoothed_gradient_is_the_heat_kernel_of_the_plain_one(scene):
     b = v.clone().requires_grad_(True)
     assert L.smooth_gradient(b, scene["edges"], 5).data_ptr() == b.data_ptr() or torch.equal(
         L.smooth_gradient(b, scene["edges"], 5), b)
+
+
+def test_trainer_applies_the_focused_loss_and_caches_targets_from_echo_clean():
+    import meshsar_builder.trainer.train as T
+    from meshsar_builder.radar.imaging import ImageParams
+    from meshsar_builder.trainer.config import parse_config
+
+    radar = RP.RadarParams(aperture=(16, 16), step_mm=10.0, n_samples=8, echo_decimation=(2, 2, 2),
+                           loss_decimation=(1, 1, 2))
+    geometry = T.DatasetGeometry.from_index(RP.index_metadata(radar, ImageParams(size=32)))
+    assert geometry.full_radar is not None
+    config = parse_config('name = "x"\n[radar_loss]\nmode = "focused"\nsmooth_iterations = 10\n'
+                          'focused_lateral_mm = 5.0\nfocused_range_mm = 10.0\n')
+    rng = np.random.default_rng(0)
+    echo_clean = torch.as_tensor(rng.standard_normal((1, 3, 16, 16, 4)) + 1j * rng.standard_normal((1, 3, 16, 16, 4)),
+                                 dtype=torch.complex64)
+    batch = {"sample_id": ["s0"], "echo_clean": echo_clean}
+    params = T.focused_params(config.radar_loss)
+    first = geometry.focused_targets(batch, params, "clean")
+    assert first.shape[:2] == (1, 3)
+    batch["echo_clean"] = echo_clean * 0  # the kept target is used, not refocused
+    assert torch.equal(geometry.focused_targets(batch, params, "clean"), first)
+    with pytest.raises(Exception, match="echo_noisy"):
+        geometry.focused_targets({"sample_id": ["s1"], "echo_clean": echo_clean}, params, "recorded")
