@@ -50,8 +50,9 @@ def synthetic_batch(batch_size: int, geometry: DatasetGeometry, radar: RadarPara
     ex, ey = radar.aperture[0] // radar.echo_decimation[0], radar.aperture[1] // radar.echo_decimation[1]
     echo = torch.stack([torch.stack([echo_torch(v, faces, geometry.positions[k], geometry.freqs, radar)
                                      .reshape(ex, ey, -1) for k in range(len(geometry.view_names))]) for v in verts])
-    out = {"verts": verts, "faces": [faces] * batch_size, "echo": echo, "sample_id": [str(k) for k in range(batch_size)],
-           "sar": torch.rand(batch_size, len(geometry.view_names), 2, 128, 128, generator=torch.Generator().manual_seed(0))}
+    sar = torch.rand(batch_size, len(geometry.view_names), 2, 128, 128, generator=torch.Generator().manual_seed(0))
+    out = {"verts": verts, "faces": [faces] * batch_size, "echo": echo, "sar": sar,
+           "sample_id": [str(k) for k in range(batch_size)]}
     if geometry.full_radar is not None:
         from meshsar_builder.trainer.train import focused_params
 

@@ -179,7 +179,10 @@ class FocusedSetup:
         return self._torch[key]
 
     def weights(self, centroids, normals, areas, view: int):
-        """Facet weights a_k (..., F) of one view: area / R^2 x the Hann window at the specular point (or x lobe: diffuse)."""
+        """Facet weights a_k (..., F) of one view: area / R^2 x the Hann window at the specular point.
+
+        (reflection "diffuse": x the lobe toward the aperture centre instead of the window.)
+        """
         t = self._tensors(centroids.device, centroids.dtype)
         frame = t["frames"][view]
         c = centroids @ frame.T  # (..., F, 3) view coordinates u, v, w
@@ -203,7 +206,7 @@ class FocusedSetup:
         return areas * window * (z0 * z0) / r2, c
 
     def splat(self, coords: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        """Trilinear splat of weights (B, F) at view coordinates coords (B, F, 3) into (B, 2S, H, W) (centred along w)."""
+        """Trilinear splat of weights (B, F) at view coordinates (B, F, 3) into (B, 2S, H, W), centred along w."""
         s, h, wd = self.shape
         batch = coords.shape[0]
         # fractional voxel indices along (w, v, u); the padded w axis starts s // 2 earlier

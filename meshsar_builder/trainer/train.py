@@ -497,8 +497,8 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     index = read_index(data)
     geometry = DatasetGeometry.from_index(index, config.data.views)
     train_ids, val_ids = validation_split(data, index, seed_, config.data.val_fraction)
-    every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels),
-                           noisy_loss_echo=config.radar_loss.mode == "focused" and config.radar_loss.target == "recorded")
+    recorded = config.radar_loss.mode == "focused" and config.radar_loss.target == "recorded"
+    every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels), noisy_loss_echo=recorded)
     train_set, val_set = Subset(every, train_ids), Subset(every, val_ids)
     state = load_checkpoint(run / CHECKPOINT, device) if (run / CHECKPOINT).exists() else None
     if state is not None and not same_run(state["config_text"], config):
