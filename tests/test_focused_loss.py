@@ -60,7 +60,7 @@ def loss_at(scene, verts, targets, grad=False):
                         scene["setup"])
     if grad:
         loss.backward()
-        return float(loss), v.grad[0].double().numpy()
+        return float(loss.detach()), v.grad[0].double().numpy()
     return float(loss)
 
 

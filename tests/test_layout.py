@@ -28,7 +28,7 @@ ALLOWED = {
 # modules exempted: the differentiable echo, the GPU radar (imported only for a CUDA device)
 # and the PyTorch readers.
 FORBIDDEN_EXTERNAL = {domain: {"torch"} for domain in ("pipeline", "geometry", "radar", "dataset")}
-TORCH_ALLOWED = {("radar", "differentiable"), ("radar", "gpu"), ("dataset", "readers")}
+TORCH_ALLOWED = {("radar", "differentiable"), ("radar", "focused"), ("radar", "gpu"), ("dataset", "readers")}
 MAX_LINES = 600
 
 

@@ -149,7 +149,7 @@ class FocusedSetup:
     def blurred(self, volume: np.ndarray) -> np.ndarray:
         """Gaussian blur of a (S, H, W) volume (zero-padded along w)."""
         s = self.shape[0]
-        out = np.fft.irfftn(np.fft.rfftn(self._centred(volume)) * self.blur, s=self.padded)
+        out = np.fft.irfftn(np.fft.rfftn(self._centred(volume)) * self.blur, s=self.padded, axes=(0, 1, 2))
         return out[s // 2: s // 2 + s]
 
     def target(self, echo: np.ndarray, sigma: float = 0.0) -> np.ndarray:
