@@ -81,7 +81,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
             print(f"{part}: {Path(args.out) / result_name(args.device)}")
         else:
-            print(f"{part}: {Path(args.out) / (part + '.json')}")
+            print(f"{part}: {Path(args.out) / (part.replace('-', '_') + '.json')}")  # radar-loss -> radar_loss.json
     return 0
 
 
