@@ -16,6 +16,7 @@ import numpy as np
 from meshsar_builder.dataset import card
 from meshsar_builder.dataset.shards import INDEX_NAME
 from meshsar_builder.dataset.splits import RESERVED, split_path
+from meshsar_builder.geometry.meshfile import read_ply
 from meshsar_builder.geometry.ssm import load_model
 from meshsar_builder.pipeline.io import read_json, write_bytes
 from meshsar_builder.pipeline.runner import STAGE_ORDER, Context, Item, Results, Stage
@@ -31,6 +32,10 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     model = ctx.stage_dir("ssm") / "model.npz"
     split = split_path(ctx.out, ctx.recipe.splits.seed)
     inputs = tuple(str(p) for p in (index_path, split, model, ctx.stage_dir("ssm") / "report.json") if p.exists())
+    tracks = sorted(results.of("track").items())
+    track = tracks[0][1] if tracks else None  # the first beating subject's frames in correspondence
+    if track is not None:
+        inputs += tuple(str(ctx.stage_dir("track") / f"{mid}.ply") for mid in track["frames"])
     dynamic = [r for r in results.of("meshes").values() if r.get("frame") is not None]
     timing = {}
     for stage in STAGE_ORDER:
@@ -42,8 +47,12 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         outputs += ["ssm_variance.png", "ssm_modes.png"]
     if dynamic:
         outputs.append("cycle.png")
-    return [Item("card", tuple(outputs), inputs=inputs, params={"gallery": GALLERY, "version": 1},
-                 data={"dynamic": dynamic, "timing": timing})]
+    if track is not None:
+        outputs.append("motion.png")
+    return [Item("card", tuple(outputs), inputs=inputs, params={"gallery": GALLERY, "version": 2},
+                 data={"dynamic": dynamic, "timing": timing, "track": track,
+                       "tracks": [[rec["reference"], len(rec["frames"]), len(rec["in_correspondence"])]
+                                  for _, rec in tracks]})]
 
 
 def radar_section(index: dict) -> list[str]:
@@ -95,6 +104,15 @@ def run(ctx: Context, item: Item) -> dict:
         card.cycle_plot(item.data["dynamic"], folder / "cycle.png")
         lines += ["## Dynamic subjects", "", "Chamber volumes over the cycle, from the label maps' voxel counts.", "",
                   "![cycle](cycle.png)", ""]
+    if "motion.png" in item.outputs:
+        track = item.data["track"]
+        card.motion_plot({mid: read_ply(ctx.stage_dir("track") / f"{mid}.ply") for mid in track["frames"]}, track,
+                         folder / "motion.png")
+        lines += ["## Frames in correspondence", "",
+                  "Each beating subject's reference frame (ED, else the first) fitted to every frame, so all its "
+                  "frames share one mesh (stages/track.py); a frame whose fit was rejected keeps its own mesh.", "",
+                  "![motion](motion.png)", "",
+                  card.markdown_table(["reference frame", "frames", "in correspondence"], item.data["tracks"]), ""]
     split_file = split_path(ctx.out, ctx.recipe.splits.seed)
     split = read_json(split_file) if split_file.exists() else {}
     names = [k for k in split if k not in RESERVED]
@@ -113,4 +131,4 @@ def run(ctx: Context, item: Item) -> dict:
     return {"gallery": ids, "counts": index["counts"]}
 
 
-STAGE = Stage(name=NAME, version=2, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=3, plan=plan, run=run)

@@ -2,7 +2,8 @@
 
 Dataset meshes are the shape model's samples (sources with `use = "ssm"`), the
 samples of external shape models (`kind = "shape_model"` sources) and the
-remeshed meshes of sources with `use = "direct"` (every frame). Each is
+remeshed meshes of sources with `use = "direct"` (every frame; the frames of a beating
+subject as its reference mesh fitted to each, stages/track.py, meta `correspondence`). Each is
 moved to its heart-centred frame (minus the centre of its bounding box; for the frames
 of one subject, the centre of its ED or first frame's box, shared by all) and scanned
 from every view of `[radar]`.
@@ -21,6 +22,7 @@ import dataclasses
 
 import numpy as np
 
+from meshsar_builder.dataset.frames import subject_series
 from meshsar_builder.geometry.meshfile import read_ply
 from meshsar_builder.pipeline.io import atomic_path
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
@@ -45,38 +47,22 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
             out.append((sid, str(ctx.stage_dir("sources") / name / f"{sid}.ply"), meta))
     cohorts = {s.name: s.cohort for s in ctx.recipe.sources if getattr(s, "cohort", "")}
     direct = {mid: rec for mid, rec in results.of("remesh").items() if rec["use"] == "direct"}
-    reference = reference_frames(direct, cohorts)
+    reference = {mid: ref for mids, ref in subject_series(direct, cohorts) for mid in mids}
+    tracked = {mid: (rec, report) for rec in results.of("track").values() for mid, report in rec["frames"].items()}
     for mid, rec in direct.items():
         meta = {k: rec[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")}
         if rec["source"] in cohorts:  # sources sharing subject names: splits group across them
             meta["cohort"] = cohorts[rec["source"]]
         if rec["frame"] is not None or rec["phase"]:  # a frame: the heart frame of its subject's reference
             meta["reference_frame"] = reference[mid]
-        out.append((mid, str(ctx.stage_dir("remesh") / f"{mid}.ply"), {**meta, "subset": "direct"}))
+        path = ctx.stage_dir("remesh") / f"{mid}.ply"
+        if mid in tracked:  # a beating subject's frame: the reference mesh fitted to it (stages/track.py)
+            track, report = tracked[mid]
+            path = ctx.stage_dir("track") / f"{mid}.ply"
+            meta["correspondence"] = ("reference" if mid == track["reference"] else "tracked" if report["tracked"]
+                                      else f"own mesh (fit rejected: {report['rejected']})")
+        out.append((mid, str(path), {**meta, "subset": "direct"}))
     return out
-
-
-def reference_frames(records: dict[str, dict], cohorts: dict[str, str] | None = None) -> dict[str, str]:
-    """Each mesh's reference frame: its subject's ED frame, else its first (lowest frame number).
-
-    records : {item id: remesh sidecar}; cohorts : {source: cohort} for sources that share
-    subject names (annotated and predicted frames of one patient). A subject is (cohort or
-    source, subject). DESIGN section 3: all frames of a subject share the reference's
-    heart-frame centre, so the motion shows in the images and the aperture does not follow it.
-    """
-    subjects: dict[tuple, list[str]] = {}
-    for mid, rec in records.items():
-        subjects.setdefault(((cohorts or {}).get(rec["source"], rec["source"]), rec["subject"]), []).append(mid)
-    reference = {}
-    for mids in subjects.values():
-        first = min(mids, key=lambda mid: _reference_rank(records[mid], mid))
-        reference.update({mid: first for mid in mids})
-    return reference
-
-
-def _reference_rank(rec: dict, mid: str) -> tuple:
-    """ED first, then numbered frames in order, then the rest by id."""
-    return rec["phase"] != "ED", rec["frame"] is None, rec["frame"] if rec["frame"] is not None else 0, mid
 
 
 def item_params(ctx: Context) -> dict:
@@ -137,4 +123,5 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 2: the physical-optics facet echo and the image-domain noise floor (image_snr_db).
 # Version 3: echo_clean on the loss grid, and noise drawn from a stored uint64 seed per view.
 # Version 4: frames of a subject share its ED (or first) frame's centre.
-STAGE = Stage(name=NAME, version=4, plan=plan, run=run, resources=resources, check=check)
+# Version 5: a beating subject's frames are its reference mesh fitted to each (stages/track.py).
+STAGE = Stage(name=NAME, version=5, plan=plan, run=run, resources=resources, check=check)

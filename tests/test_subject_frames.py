@@ -1,12 +1,14 @@
-"""Frames of one subject share one heart frame (DESIGN section 3): its ED (or first) frame's centre."""
+"""Frames of one subject share one heart frame (DESIGN section 3), its ED (or first) frame's centre,
+and one mesh: its reference frame's, fitted to each (stages/track.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from meshsar_builder.geometry.meshfile import read_ply
 from meshsar_builder.pipeline import recipe as R
 from meshsar_builder.pipeline.runner import build
-from stages.radar import reference_frames
+from meshsar_builder.dataset.frames import subject_series
 
 BEATING = """
 name = "beating"
@@ -36,7 +38,7 @@ def frame(source, subject, frame_no, phase=""):
     return {"source": source, "subject": subject, "frame": frame_no, "phase": phase}
 
 
-def test_the_reference_is_ed_else_the_first_frame_per_subject():
+def test_frames_are_in_cycle_order_and_the_reference_is_ed_else_the_first():
     records = {
         "a-f03": frame("a", "p1", 3), "a-f01": frame("a", "p1", 1), "a-f07": frame("a", "p1", 7, "ED"),
         "a-p2-f05": frame("a", "p2", 5), "a-p2-f02": frame("a", "p2", 2, "ES"),
@@ -44,11 +46,12 @@ def test_the_reference_is_ed_else_the_first_frame_per_subject():
         "c-ES": frame("c", "p3", None, "ES"), "c-ED": frame("c", "p3", None, "ED"),
         "still": frame("d", "s", None),
     }
-    assert reference_frames(records) == {
-        "a-f03": "a-f07", "a-f01": "a-f07", "a-f07": "a-f07", "a-p2-f05": "a-p2-f02", "a-p2-f02": "a-p2-f02",
-        "b-f01": "b-f01", "c-ES": "c-ED", "c-ED": "c-ED", "still": "still"}
+    series = subject_series(records)
+    assert series == [(["a-f01", "a-f03", "a-f07"], "a-f07"), (["a-p2-f02", "a-p2-f05"], "a-p2-f02"),
+                      (["b-f01"], "b-f01"), (["c-ED", "c-ES"], "c-ED"), (["still"], "still")]
     # annotated (a) and predicted (b) frames of one cohort: one patient, one reference
-    assert reference_frames(records, {"a": "cohort", "b": "cohort"})["b-f01"] == "a-f07"
+    cohort = subject_series(records, {"a": "cohort", "b": "cohort"})
+    assert (["a-f01", "b-f01", "a-f03", "a-f07"], "a-f07") in cohort
 
 
 def test_frames_of_a_subject_are_scanned_in_its_ed_frame(tmp_path):
@@ -62,6 +65,7 @@ def test_frames_of_a_subject_are_scanned_in_its_ed_frame(tmp_path):
     for sid, rec in radar.items():
         subjects.setdefault(rec["meta"]["subject"], []).append(sid)
     assert len(subjects) == 2
+    tracked = 0
     for sids in subjects.values():
         (ed,) = [s for s in sids if radar[s]["meta"]["phase"] == "ED"]
         centres = {s: np.load(out / "radar" / f"{s}.npz")["center_mm"] for s in sids}
@@ -72,3 +76,20 @@ def test_frames_of_a_subject_are_scanned_in_its_ed_frame(tmp_path):
         # centre is not just every frame's own
         own = np.array([remeshed[s]["center_mm"] for s in sids])
         assert np.ptp(own, axis=0).max() > 0.5
+        # the frames are the ED mesh fitted to each (stages/track.py): one topology, one labelling;
+        # a rejected fit leaves the frame its own mesh, said in its meta
+        ref = read_ply(out / "track" / f"{ed}.ply")
+        for s in sids:
+            verts, faces, labels = read_ply(out / "track" / f"{s}.ply")
+            kind = radar[s]["meta"]["correspondence"]
+            if kind in ("reference", "tracked"):
+                np.testing.assert_array_equal(faces, ref[1])
+                np.testing.assert_array_equal(labels, ref[2])
+                assert (kind == "reference") == (s == ed)
+                assert s == ed or np.abs(verts - ref[0]).max() > 0.5  # and they move
+            else:
+                assert kind.startswith("own mesh (fit rejected: registration rejected: ")
+                np.testing.assert_array_equal(faces, read_ply(out / "remesh" / f"{s}.ply")[1])
+        tracked += sum(radar[s]["meta"]["correspondence"] == "tracked" for s in sids)
+    assert tracked >= 2, "at most one frame of the two subjects was tracked"
+    assert set(results.of("track")) == {f"{radar[sids[0]]['meta']['reference_frame']}-cycle" for sids in subjects.values()}

@@ -23,6 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
 from meshsar_builder.dataset.shards import INDEX_NAME, Shard  # noqa: E402
+from meshsar_builder.geometry.landmarks import structure_name  # noqa: E402
 from meshsar_builder.geometry.structures import STRUCTURES  # noqa: E402
 from meshsar_builder.pipeline.io import atomic_path, read_json  # noqa: E402
 
@@ -191,6 +192,42 @@ def cycle_plot(frames: list[dict], path: Path) -> None:
     motion.set_ylabel("from end-diastole (mm)")
     if motion.lines:
         motion.legend(fontsize=6)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def motion_plot(meshes: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]], record: dict, path: Path) -> None:
+    """One beating subject's per-vertex displacement over its cycle (stages/track.py).
+
+    meshes : per frame id in cycle order, (verts (n, 3), faces, labels (n,)) from track/;
+    record : the track stage's sidecar record of the subject (reference, frames).
+    Left: the reference mesh's vertices seen from the front (x, z), coloured by their
+    displacement at the frame that moved most; right: mean displacement per structure for
+    every frame in correspondence (a frame whose fit was rejected has no point).
+    """
+    reference = record["reference"]
+    ref_verts, _, ref_labels = meshes[reference]
+    tracked = [mid for mid in meshes if record["frames"][mid].get("tracked")]
+    moved = {mid: np.linalg.norm(meshes[mid][0] - ref_verts, axis=1) for mid in tracked}
+    peak = max(moved, key=lambda mid: moved[mid].mean())
+    fig, (ax, curve) = plt.subplots(1, 2, figsize=(10, 4))
+    order = np.argsort(ref_verts[:, 1])  # nearer (smaller y, anterior) drawn last
+    dots = ax.scatter(ref_verts[order, 0], ref_verts[order, 2], c=moved[peak][order], s=3, cmap="viridis")
+    fig.colorbar(dots, ax=ax, label="displacement from the reference (mm)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("z (mm)")
+    ax.set_title(f"{peak} against {reference}", fontsize=8)
+    position = {mid: i for i, mid in enumerate(meshes)}
+    for structure in np.unique(ref_labels):
+        if structure == 0:
+            continue
+        mine = ref_labels == structure
+        xs = [position[mid] for mid in tracked]
+        curve.plot(xs, [moved[mid][mine].mean() for mid in tracked], "o-", ms=3, label=structure_name(structure))
+    curve.set_xlabel("frame (cycle order, from the series' first)")
+    curve.set_ylabel("mean displacement (mm)")
+    curve.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path)
 

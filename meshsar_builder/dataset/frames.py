@@ -223,3 +223,27 @@ def check_frames(items: list[LabelItem], where: str) -> None:
                              f"{li.item_id!r} (names are made file-name safe); rename one")
         ids[li.item_id] = li
 
+
+def subject_series(records: dict[str, dict], cohorts: dict[str, str] | None = None) -> list[tuple[list[str], str]]:
+    """The frames of every subject in cycle order, and its reference frame.
+
+    records : {item id: sidecar with source, subject, frame, phase}; cohorts : {source: cohort}
+    for sources that share subject names (annotated and predicted frames of one patient). A
+    subject is (cohort or source, subject). Cycle order: by frame number as the source numbers
+    frames, frames known by phase only after them (ED before ES). The reference is the ED frame,
+    else the first. Returns [(item ids in cycle order, reference id)], subjects in a fixed order.
+    """
+    subjects: dict[tuple, list[str]] = {}
+    for mid, rec in records.items():
+        subjects.setdefault(((cohorts or {}).get(rec["source"], rec["source"]), rec["subject"]), []).append(mid)
+    out = []
+    for key in sorted(subjects):
+        mids = sorted(subjects[key], key=lambda mid: _cycle_rank(records[mid], mid))
+        reference = min(mids, key=lambda mid: (records[mid]["phase"] != "ED", _cycle_rank(records[mid], mid)))
+        out.append((mids, reference))
+    return out
+
+
+def _cycle_rank(rec: dict, mid: str) -> tuple:
+    return rec["frame"] is None, rec["frame"] if rec["frame"] is not None else 0, rec["phase"] != "ED", mid
+

@@ -6,6 +6,12 @@ landmark term needs. From the labels alone, every mesh gets:
 - `centroid:<s>`: the area-weighted centroid of structure s's surface patch;
 - `ring:<a>-<b>`: the centre of the junction between structures a and b (the mean of the
   midpoints of the edges from one to the other), e.g. a valve or a vessel ring;
+- `ring:<a>-<b>@<j>` (with `ring_points` K > 0): a mean of those midpoints weighted by a
+  smooth window about the angle 2 pi j / K around the ring's centre, in the plane of the
+  midpoints (the least principal axis, turned from structure b's centroid toward a's, is its
+  normal), counted from the direction toward the centroid of the other structures (of the
+  labelled surface if there are none): K points along the ring, so its motion along the
+  surface (a base descending along the ventricular walls) is seen, not only its centre's;
 - `apex`: the mean of the ventricular (lv, myo) vertices within `APEX_BAND_MM` of the one
   farthest from the centroid of the other structures (the base of the heart).
 Each landmark carries a confidence (how well the labels define it), and one that is ill
@@ -70,12 +76,13 @@ def _vertex_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.bincount(faces.ravel(), np.repeat(face_areas / 3.0, 3), minlength=len(verts))
 
 
-def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, min_vertices: int = 10) -> Landmarks:
+def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, min_vertices: int = 10,
+                    ring_points: int = 0) -> Landmarks:
     """Landmarks of a labelled surface (see the module docstring).
 
     verts : (n, 3) float mm, faces : (m, 3) int, labels : (n,) int (0 = unlabelled, skipped).
     Structures and junctions with fewer than `min_vertices` vertices give no landmark
-    (a few stray vertices have no stable centre).
+    (a few stray vertices have no stable centre). ring_points: sector points per ring (0: none).
     """
     verts, faces, labels = np.asarray(verts, dtype=np.float64), np.asarray(faces), np.asarray(labels).astype(np.int64)
     n = len(verts)
@@ -104,6 +111,9 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
                     continue
                 # Mean of the crossing edges' midpoints: on the boundary itself, not on one side of it.
                 add(key, crossing.ravel(), np.ones(crossing.size), length / RING_MIN_MM)
+                sectors = _ring_sectors(verts, crossing, labels, a, b, ring_points) if ring_points else []
+                for j, chosen, weight in sectors:
+                    add(f"{key}@{j}", chosen.ravel(), np.repeat(weight, 2), length / RING_MIN_MM)
     ventricle = np.isin(labels, VENTRICLE)
     base = (labels != 0) & ~ventricle
     if ventricle.sum() >= min_vertices and base.sum() >= min_vertices:
@@ -118,6 +128,41 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
             add("apex", band, np.ones(len(band)), min(elongation / APEX_MIN_ELONGATION, alignment / APEX_MIN_ALIGNMENT))
     weights = sp.vstack(rows, format="csr") if rows else sp.csr_matrix((0, n))
     return Landmarks(tuple(keys), weights, tuple(confidence), tuple(dropped))
+
+
+def _ring_sectors(verts: np.ndarray, crossing: np.ndarray, labels: np.ndarray, a: int, b: int,
+                  count: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(j, crossing edges (e, 2), their weights (e,)) for the `count` points along a junction
+    ring (see the module docstring). Point j weighs each crossing edge's midpoint by a smooth
+    window of its angle about the ring's centre, exp(kappa (cos(angle - 2 pi j / count) - 1)),
+    half its peak at half a sector's width: hard sectors would jump as midpoints cross their
+    borders from one mesh to the next. A point whose window holds less than 2 edges' weight
+    (a gap in an open junction) is left out."""
+    mid = 0.5 * (verts[crossing[:, 0]] + verts[crossing[:, 1]])
+    centre = mid.mean(axis=0)
+    normal = np.linalg.eigh(np.cov((mid - centre).T))[1][:, 0]
+    # Turned from b's side toward a's: a cap (a base's cavity patch) lies nearly in the ring's
+    # plane, so its own centroid alone leaves the sign to chance.
+    if (verts[labels == a].mean(axis=0) - verts[labels == b].mean(axis=0)) @ normal < 0:
+        normal = -normal
+    # Counted from the structures beside the junction: the whole surface's centroid sits near
+    # the axis of a ring around the largest structure, where its direction is unstable.
+    others = (labels != 0) & (labels != a) & (labels != b)
+    toward = verts[others if others.any() else labels != 0].mean(axis=0) - centre
+    first = toward - (toward @ normal) * normal
+    if np.linalg.norm(first) < 1e-6 * max(1.0, np.linalg.norm(toward)):
+        return []  # the surface's centroid on the ring's axis: no direction to count from
+    first /= np.linalg.norm(first)
+    second = np.cross(normal, first)
+    angle = np.arctan2((mid - centre) @ second, (mid - centre) @ first)
+    kappa = np.log(2.0) / (1.0 - np.cos(np.pi / count))
+    out = []
+    for j in range(count):
+        weight = np.exp(kappa * (np.cos(angle - 2 * np.pi * j / count) - 1.0))
+        keep = weight >= 1e-3
+        if weight[keep].sum() >= 2.0:
+            out.append((j, crossing[keep], weight[keep]))
+    return out
 
 
 def _apex_shape(points: np.ndarray, weights: np.ndarray, direction: np.ndarray) -> tuple[float, float]:

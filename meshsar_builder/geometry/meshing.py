@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import numba
 import numpy as np
 import trimesh
 from scipy import ndimage
@@ -460,8 +461,65 @@ def transfer_labels(src_verts: np.ndarray, src_labels: np.ndarray, dst_verts: np
     return np.asarray(src_labels, dtype=np.uint8)[nearest]
 
 
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.einsum("...i,...i->...", a, b)
+@numba.njit(cache=True)
+def _segment(px, py, pz, sx, sy, sz, ex, ey, ez):
+    """Closest point of segment s-e to p, and its squared distance (scalars: no allocation)."""
+    dx, dy, dz = ex - sx, ey - sy, ez - sz
+    length2 = dx * dx + dy * dy + dz * dz
+    along = ((px - sx) * dx + (py - sy) * dy + (pz - sz) * dz) / (length2 if length2 > 0 else 1.0)
+    along = min(max(along, 0.0), 1.0)
+    qx, qy, qz = sx + along * dx, sy + along * dy, sz + along * dz
+    return qx, qy, qz, (px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2
+
+
+@numba.njit(cache=True)
+def _closest_on_one(p, a, b, c):
+    """Closest point of triangle abc to p (all (3,) float): its coordinates and squared distance.
+
+    The projection on the plane when it falls inside the triangle, else the nearest of the
+    closest points on the three edges (degenerate triangles fall through to the edges)."""
+    abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    acx, acy, acz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+    apx, apy, apz = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    d00, d01, d11 = abx * abx + aby * aby + abz * abz, abx * acx + aby * acy + abz * acz, acx * acx + acy * acy + acz * acz
+    d20, d21 = apx * abx + apy * aby + apz * abz, apx * acx + apy * acy + apz * acz
+    den = d00 * d11 - d01 * d01
+    if den > 0:
+        s, t = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+        if s >= 0 and t >= 0 and s + t <= 1:
+            qx, qy, qz = a[0] + s * abx + t * acx, a[1] + s * aby + t * acy, a[2] + s * abz + t * acz
+            return qx, qy, qz, (p[0] - qx) ** 2 + (p[1] - qy) ** 2 + (p[2] - qz) ** 2
+    best = _segment(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2])
+    other = _segment(p[0], p[1], p[2], b[0], b[1], b[2], c[0], c[1], c[2])
+    if other[3] < best[3]:
+        best = other
+    other = _segment(p[0], p[1], p[2], c[0], c[1], c[2], a[0], a[1], a[2])
+    if other[3] < best[3]:
+        best = other
+    return best
+
+
+@numba.njit(cache=True)
+def _closest_pairs(points, tri):
+    best = np.empty_like(points)
+    d2 = np.empty(len(points))
+    for i in range(len(points)):
+        best[i, 0], best[i, 1], best[i, 2], d2[i] = _closest_on_one(points[i], tri[i, 0], tri[i, 1], tri[i, 2])
+    return best, d2
+
+
+@numba.njit(cache=True)
+def _closest_candidate(points, verts, faces, candidates):
+    best = np.empty_like(points)
+    pick = np.empty(len(points), dtype=np.int64)
+    best_d2 = np.full(len(points), np.inf)
+    for i in range(len(points)):
+        for j in range(candidates.shape[1]):
+            f = candidates[i, j]
+            x, y, z, d2 = _closest_on_one(points[i], verts[faces[f, 0]], verts[faces[f, 1]], verts[faces[f, 2]])
+            if d2 < best_d2[i]:
+                best[i, 0], best[i, 1], best[i, 2], best_d2[i], pick[i] = x, y, z, d2, j
+    return best, pick, best_d2
 
 
 def closest_on_triangles(points: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -471,26 +529,25 @@ def closest_on_triangles(points: np.ndarray, tri: np.ndarray) -> tuple[np.ndarra
     The projection on the plane when it falls inside the triangle, else the nearest of the
     closest points on the three edges (degenerate triangles fall through to the edges).
     """
-    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
-    ab, ac, ap = b - a, c - a, points - a
-    d00, d01, d11 = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
-    d20, d21 = _dot(ap, ab), _dot(ap, ac)
-    den = d00 * d11 - d01 * d01
-    safe = np.where(den > 0, den, 1.0)
-    s, t = (d11 * d20 - d01 * d21) / safe, (d00 * d21 - d01 * d20) / safe
-    inside = (den > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
-    best = a + s[..., None] * ab + t[..., None] * ac
-    best_d2 = np.where(inside, _dot(points - best, points - best), np.inf)
-    for start, end in ((a, b), (b, c), (c, a)):
-        edge = end - start
-        length2 = _dot(edge, edge)
-        along = np.clip(_dot(points - start, edge) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
-        on_edge = start + along[..., None] * edge
-        d2 = _dot(points - on_edge, points - on_edge)
-        closer = d2 < best_d2
-        best = np.where(closer[..., None], on_edge, best)
-        best_d2 = np.where(closer, d2, best_d2)
-    return best, best_d2
+    points, tri = np.asarray(points, dtype=np.float64), np.asarray(tri, dtype=np.float64)
+    shape = np.broadcast_shapes(points.shape[:-1], tri.shape[:-2])
+    flat_points = np.ascontiguousarray(np.broadcast_to(points, (*shape, 3))).reshape(-1, 3)
+    flat_tri = np.ascontiguousarray(np.broadcast_to(tri, (*shape, 3, 3))).reshape(-1, 3, 3)
+    best, d2 = _closest_pairs(flat_points, flat_tri)
+    return best.reshape(*shape, 3), d2.reshape(shape)
+
+
+def closest_among(points: np.ndarray, verts: np.ndarray, faces: np.ndarray,
+                  candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point, the closest point on the nearest of its candidate faces.
+
+    points : (p, 3), verts : (n, 3), faces : (m, 3), candidates : (p, k) face ids ->
+    closest points (p, 3), the column of `candidates` that won (p,), squared distances (p,).
+    """
+    return _closest_candidate(np.ascontiguousarray(points, dtype=np.float64),
+                              np.ascontiguousarray(verts, dtype=np.float64),
+                              np.ascontiguousarray(faces, dtype=np.int64),
+                              np.ascontiguousarray(candidates, dtype=np.int64))
 
 
 def point_to_surface(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -501,7 +558,8 @@ def point_to_surface(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -
     once it is no farther than (k-th centroid distance - largest centroid-to-vertex
     radius), below which no other face can reach; k doubles for the rest.
     """
-    tri = np.asarray(verts, dtype=np.float64)[np.asarray(faces)]
+    verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    tri = verts[faces]
     centroids = tri.mean(1)
     radius = np.linalg.norm(tri - centroids[:, None], axis=2).max()
     tree = cKDTree(centroids)
@@ -513,9 +571,8 @@ def point_to_surface(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -
     while len(todo):
         reach, cand = tree.query(points[todo], k=k)
         reach, cand = reach.reshape(len(todo), -1), cand.reshape(len(todo), -1)
-        dist = np.sqrt(closest_on_triangles(points[todo][:, None, :], tri[cand])[1])  # (t, k)
-        pick = dist.argmin(1)
-        best[todo] = dist[np.arange(len(todo)), pick]
+        _, pick, d2 = closest_among(points[todo], verts, faces, cand)
+        best[todo] = np.sqrt(d2)
         best_face[todo] = cand[np.arange(len(todo)), pick]
         if k == len(faces):
             break

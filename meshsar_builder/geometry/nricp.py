@@ -51,7 +51,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from meshsar_builder.geometry.landmarks import face_labels
-from meshsar_builder.geometry.meshing import closest_on_triangles
+from meshsar_builder.geometry.meshing import closest_among
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import self_intersecting_faces
 
@@ -120,10 +120,8 @@ class Surface:
         """(p, 3) points -> closest surface points (p, 3), their faces (p,), distances (p,)."""
         _, nearest = self.tree.query(points, k=self.near)
         candidates = self.vertex_faces[nearest].reshape(len(points), -1)
-        best, d2 = closest_on_triangles(points[:, None, :], self.verts[self.faces[candidates]])
-        pick = np.argmin(d2, axis=1)
-        rows = np.arange(len(points))
-        return best[rows, pick], candidates[rows, pick], np.sqrt(d2[rows, pick])
+        best, pick, d2 = closest_among(points, self.verts, self.faces, candidates)
+        return best, candidates[np.arange(len(points)), pick], np.sqrt(d2)
 
 
 class Subject:

@@ -204,6 +204,7 @@ def register(
     rng: np.random.Generator,
     template_labels: np.ndarray | None = None,
     subject_labels: np.ndarray | None = None,
+    prealigned: bool = False,
 ) -> tuple[np.ndarray, dict]:
     """Fit the template mesh to a subject surface.
 
@@ -228,18 +229,21 @@ def register(
         stopped early), steps, fold_repeats, stiffened_vertices.
     With labels, matches pair only points of one structure and label landmarks steer the
     pre-alignment and the coarse steps (see prealign and nricp.nricp).
+    prealigned: the template already lies on the subject (a frame warm-started from the fit
+    of its neighbour in one scanner frame, tracking.py): no similarity pre-alignment, whose
+    scale and rotation would take up contraction and twist, which are shape, not pose.
     A subject that is not closed genus 0 raises MeshError. Judge the fit with accept().
     """
     require_valid(subject_verts, subject_faces, "registration subject")
     fitted, report = _register_once(template_verts, template_faces, subject_verts, subject_faces, params, rng,
-                                    template_labels, subject_labels, ())
+                                    template_labels, subject_labels, (), prealigned)
     offenders = report.get("landmark_offenders", [])
     if offenders:
         # The fit moved these landmarks away from their subject's by more than the robust start
         # did (landmark_tolerance_mm): again without them, then rejected naming them (accept).
         first = {k: report[k] for k in ("landmark_offenders", "landmark_error_mm", "landmark_start_error_mm")}
         fitted, report = _register_once(template_verts, template_faces, subject_verts, subject_faces, params, rng,
-                                        template_labels, subject_labels, tuple(offenders))
+                                        template_labels, subject_labels, tuple(offenders), prealigned)
         report["landmark_retry"] = first
     return fitted, report
 
@@ -284,7 +288,7 @@ def robust_landmarks(moving: np.ndarray, fixed: np.ndarray, similarity: bool, fl
 
 def _register_once(
     template_verts, template_faces, subject_verts, subject_faces, params: RegistrationParams, rng,
-    template_labels, subject_labels, exclude: tuple[str, ...],
+    template_labels, subject_labels, exclude: tuple[str, ...], prealigned: bool,
 ) -> tuple[np.ndarray, dict]:
     """register() without the landmark retry; `exclude`: landmark keys left out."""
     template_verts = np.asarray(template_verts, dtype=np.float64)
@@ -293,8 +297,8 @@ def _register_once(
     dropped: dict[str, str] = {}
     if template_labels is not None and subject_labels is not None:
         labels = (np.asarray(template_labels), np.asarray(subject_labels))
-        both = (label_landmarks(template_verts, template_faces, labels[0]),
-                label_landmarks(subject_verts, subject_faces, labels[1]))
+        both = (label_landmarks(template_verts, template_faces, labels[0], ring_points=params.ring_points),
+                label_landmarks(subject_verts, subject_faces, labels[1], ring_points=params.ring_points))
         dropped = dropped_landmarks(*both)
         marks = common_landmarks(*both)
         dropped |= {key: "moved away by an earlier fit (landmark_tolerance_mm)" for key in exclude if key in marks[0].keys}
@@ -307,12 +311,14 @@ def _register_once(
         keep = [key for key, ok in zip(keep, inliers) if ok]
         marks = (marks[0].select(keep), marks[1].select(keep))
     points = None if marks is None else (marks[0].points(template_verts), marks[1].points(subject_verts))
-    matrix = prealign(template_verts, template_faces, subject_verts, subject_faces, params, rng, labels, points)
+    matrix = np.eye(4) if prealigned else prealign(template_verts, template_faces, subject_verts, subject_faces,
+                                                   params, rng, labels, points)
     aligned = _apply(matrix, template_verts)
     start = None
     # The spline follows the centroids and the apex only: junction centres move with where
     # each mesh's label boundary runs out (1-2 mm between tessellations of one surface).
-    steer = [i for i, key in enumerate(marks[0].keys) if not key.startswith("ring:")] if marks is not None else []
+    # Points along a ring (ring_points) steer it too: a frame's base descends along the walls.
+    steer = [i for i, key in enumerate(marks[0].keys) if not key.startswith("ring:") or "@" in key] if marks is not None else []
     start_report = {"start": "similarity"}
     spread = _spread(points[0][steer]) if len(steer) >= 4 else 0.0
     if len(steer) >= 4 and params.landmark_weight > 0 and spread < SPLINE_MIN_SPREAD:

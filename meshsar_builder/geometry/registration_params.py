@@ -74,6 +74,17 @@ class RegistrationParams:
         kept) exceeds this is left out and the mean made again (groupwise.mean_template).
         Real biventricular hearts of 200-735 ml lie 3.6-13.3 mm from their mean; runaway
         fits 50-360 mm.
+    ring_points: landmarks along each junction ring besides its centre (landmarks.py; 0: none);
+        they steer the thin-plate-spline start too.
+    frame_ring_points: ring_points of a frame fit (tracking.py): the only cue to how far the
+        walls moved along the surface (a base descending 12-15 mm in systole).
+    frame_min_label_agreement: min_label_agreement of a frame fit. A short-axis union surface's
+        LV patch is the blood pool at the base, not tissue: over the demo phantom's cycle it
+        shrinks to 41 % of its ED area as the wall thickens, its border sliding over the
+        tissue, and fits 0.04-0.06 mm from every frame kept 0.954-0.970 of it (half the frames
+        fell under 0.97).
+    frame_steps: how many of the softest stiffness steps a frame of a beating subject runs when
+        fitted by its reference frame's mesh, warm-started from its neighbour's fit (tracking.py).
     groupwise_smoothing: most Taubin steps on a groupwise template to clear self-
         intersections and flipped faces of the plain mean before the round fails.
     """
@@ -107,6 +118,10 @@ class RegistrationParams:
     divergence_flipped: float = 0.01
     retry_stiffening: float = 4.0
     groupwise_max_distance_mm: float = 25.0
+    frame_steps: int = 2
+    frame_min_label_agreement: float = 0.95
+    ring_points: int = 0
+    frame_ring_points: int = 8
 
     def __post_init__(self) -> None:
         if not self.template:
@@ -166,5 +181,13 @@ class RegistrationParams:
             raise ValueError(f"retry_stiffening: must be >= 1, got {self.retry_stiffening}")
         if not self.groupwise_max_distance_mm > 0:
             raise ValueError(f"groupwise_max_distance_mm: must be > 0, got {self.groupwise_max_distance_mm}")
+        if not 1 <= self.frame_steps <= len(self.stiffness):
+            raise ValueError(f"frame_steps: must be in [1, {len(self.stiffness)}] (the stiffness steps), "
+                             f"got {self.frame_steps}")
+        if not 0 <= self.frame_min_label_agreement <= 1:
+            raise ValueError(f"frame_min_label_agreement: must be in [0, 1], got {self.frame_min_label_agreement}")
+        if self.ring_points < 0 or self.frame_ring_points < 0:
+            raise ValueError(f"ring_points, frame_ring_points: must be >= 0, got {self.ring_points}, "
+                             f"{self.frame_ring_points}")
         if self.distance_samples < 100:
             raise ValueError(f"distance_samples: must be >= 100, got {self.distance_samples}")

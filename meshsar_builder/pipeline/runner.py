@@ -54,7 +54,7 @@ from meshsar_builder.pipeline.recipe import Recipe
 # A full disk, a read-only or unwritable output folder, an exhausted quota.
 UNWRITABLE = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT}
 
-STAGE_ORDER = ("sources", "meshes", "remesh", "register", "ssm", "radar", "shards", "card")
+STAGE_ORDER = ("sources", "meshes", "remesh", "track", "register", "ssm", "radar", "shards", "card")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,94 @@
+"""Frames of a beating subject in correspondence: each frame fitted by its reference frame's mesh.
+
+A dynamic subject's frames (a cine series) are meshed one by one, so two frames share no
+vertices. Here the reference frame's remeshed surface (its ED frame, else its first) is the
+subject's template, and every other frame is fitted by it with the project's label-aware
+registration (registration.register), warm-started from the fit of the frame next to it
+toward the reference: frames are visited outward from the reference, forward to the end of
+the series and backward to its start. The frames lie in one scanner frame, so a fit starts
+where its neighbour's ended with no pre-alignment (a similarity would take up contraction
+and twist, which are shape), and runs only the softest `frame_steps` of the stiffness
+schedule (the motion between neighbouring frames is small). A fit outside the thresholds
+(accept, with frame_min_label_agreement: a blood-pool patch is not tissue) leaves that frame with its own mesh, recorded, and the next frame starts from the
+last accepted fit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from meshsar_builder.geometry.registration import accept, register
+from meshsar_builder.geometry.registration_params import RegistrationParams
+from meshsar_builder.pipeline.errors import MeshError
+
+
+def frame_params(params: RegistrationParams) -> RegistrationParams:
+    """The registration parameters of a warm-started frame fit: the softest `frame_steps`
+    stiffness steps of the schedule (and their normal weights), with frame_ring_points points
+    along each junction ring as landmarks, judged on frame_min_label_agreement."""
+    k = params.frame_steps
+    return dataclasses.replace(params, stiffness=params.stiffness[-k:], normal_weight=params.normal_weight[-k:],
+                               ring_points=params.frame_ring_points,
+                               min_label_agreement=params.frame_min_label_agreement)
+
+
+def visit_order(n_frames: int, reference: int) -> list[tuple[int, int]]:
+    """(frame, neighbour it starts from) pairs, outward from the reference in both directions
+    around the cycle (a cine series is periodic: its last frame neighbours its first), so no
+    frame is more than half a cycle of warm starts from the reference (drift grows with each)."""
+    forward = (n_frames - 1 + 1) // 2  # the extra frame of an even count goes forward
+    order = [((reference + k) % n_frames, (reference + k - 1) % n_frames) for k in range(1, forward + 1)]
+    order += [((reference - k) % n_frames, (reference - k + 1) % n_frames) for k in range(1, n_frames - forward)]
+    return order
+
+
+def track_frames(
+    frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    reference: int,
+    params: RegistrationParams,
+    rng_for: Callable[[int], np.random.Generator],
+    progress: Callable[[], None] | None = None,
+) -> tuple[list[np.ndarray | None], list[dict]]:
+    """Fit every frame of one subject with its reference frame's mesh.
+
+    frames : per frame (verts (p, 3) float mm, faces (q, 3) int, labels (p,) int), in cycle
+    order, all in one scanner frame; reference : index of the template frame;
+    rng_for : frame index -> its generator (the fit report's surface samples).
+    Returns per frame the fitted vertices (n, 3) (faces and labels are the reference's), or
+    None where the fit was rejected, and per frame a report (JSON-ready): `tracked`, `from`
+    (the frame index the fit started from), `seconds`, the fit's figures (mean_mm, p95_mm,
+    label_agreement, landmark_error_mm, nricp) and, for a rejected fit, `rejected` (the reason).
+    """
+    template_verts, template_faces, template_labels = frames[reference]
+    fits: list[np.ndarray | None] = [None] * len(frames)
+    fits[reference] = np.asarray(template_verts, dtype=np.float64)
+    reports: list[dict] = [{}] * len(frames)
+    reports[reference] = {"tracked": True, "reference": True}
+    fit_params = frame_params(params)
+    order = visit_order(len(frames), reference)
+    chain = {reference: [reference]}  # each frame's warm-start chain back to the reference
+    for index, neighbour in order:
+        chain[index] = [index, *chain[neighbour]]
+    for index, neighbour in order:
+        # The last accepted fit toward the reference: a rejected neighbour is skipped over.
+        start = next(j for j in chain[neighbour] if fits[j] is not None)
+        verts, faces, labels = frames[index]
+        began = time.perf_counter()
+        fitted, report = register(fits[start], template_faces, verts, faces, fit_params, rng_for(index),
+                                  template_labels, labels, prealigned=True)
+        summary = {"tracked": True, "from": start, "seconds": round(time.perf_counter() - began, 3),
+                   **{k: report[k] for k in ("mean_mm", "p95_mm", "label_agreement", "nricp") if k in report},
+                   "landmark_error_mm": report.get("landmark_error_mm")}
+        try:
+            accept(report, fit_params)
+            fits[index] = fitted
+        except MeshError as e:
+            summary.update(tracked=False, rejected=str(e))
+        reports[index] = summary
+        if progress is not None:
+            progress()
+    return fits, reports

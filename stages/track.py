@@ -1,0 +1,86 @@
+"""Stage `track`: the frames of every beating subject in correspondence (DESIGN section 6).
+
+For each subject of `use = "direct"` sources with two or more frames (one item per subject),
+the reference frame's remeshed surface (its ED frame, else its first) fits every other frame,
+warm-started from its neighbour's fit (geometry/tracking.py), so all frames of the subject
+share the reference's vertices, faces and labels: a motion field, and tissue that can be
+followed over the cycle.
+
+Outputs: `track/<frame>.ply` for every frame of the subject: the fitted reference mesh, or
+the frame's own remeshed mesh where its fit was rejected (named in the sidecar); the sidecar
+`track/<reference>-cycle.json` holds per frame whether it is in correspondence, the fit's
+figures and its seconds, and the per-vertex displacement from the reference (mean, 95th
+percentile, per structure) of the frames in correspondence.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from meshsar_builder.dataset.frames import subject_series
+from meshsar_builder.geometry.landmarks import structure_name
+from meshsar_builder.geometry.meshfile import read_ply, write_ply
+from meshsar_builder.geometry.tracking import track_frames
+from meshsar_builder.pipeline.io import atomic_path
+from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
+from meshsar_builder.pipeline.seeding import item_rng
+
+NAME = "track"
+
+
+def direct_records(ctx: Context, results: Results) -> dict[str, dict]:
+    return {mid: rec for mid, rec in results.of("remesh").items() if rec["use"] == "direct"}
+
+
+def cohorts(ctx: Context) -> dict[str, str]:
+    return {s.name: s.cohort for s in ctx.recipe.sources if getattr(s, "cohort", "")}
+
+
+def plan(ctx: Context, results: Results) -> list[Item]:
+    params = dataclasses.asdict(ctx.recipe.registration)
+    remeshed = ctx.stage_dir("remesh")
+    return [
+        Item(f"{reference}-cycle", tuple(f"{mid}.ply" for mid in mids),
+             inputs=tuple(str(remeshed / f"{mid}.ply") for mid in mids), params=params,
+             data={"frames": mids, "reference": reference})
+        for mids, reference in subject_series(direct_records(ctx, results), cohorts(ctx)) if len(mids) >= 2
+    ]
+
+
+def run(ctx: Context, item: Item) -> dict:
+    mids, reference = item.data["frames"], item.data["reference"]
+    frames = [read_ply(path) for path in item.inputs]
+    ref = mids.index(reference)
+    with threadpool_limits(limits=1):  # one core per item: items run side by side
+        fits, reports = track_frames(frames, ref, ctx.recipe.registration,
+                                     lambda i: item_rng(ctx.recipe.seed, NAME, mids[i]))
+    folder = ctx.stage_dir(NAME)
+    _, ref_faces, ref_labels = frames[ref]
+    per_frame = {}
+    for mid, path, fit, report in zip(mids, item.inputs, fits, reports):
+        if fit is None:  # rejected: the frame keeps its own mesh
+            with atomic_path(folder / f"{mid}.ply") as tmp:
+                shutil.copyfile(path, tmp)
+        else:
+            write_ply(folder / f"{mid}.ply", fit, ref_faces, ref_labels)
+            report = {**report, **displacement(fit - fits[ref], ref_labels)}
+        per_frame[mid] = report
+    return {"reference": reference, "frames": per_frame,
+            "in_correspondence": [mid for mid, fit in zip(mids, fits) if fit is not None]}
+
+
+def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
+    """Per-vertex displacement (n, 3) mm from the reference -> its mean and 95th percentile, and
+    its mean per structure (JSON-ready)."""
+    length = np.linalg.norm(moved, axis=1)
+    return {"displacement_mm": round(float(length.mean()), 3),
+            "displacement_p95_mm": round(float(np.percentile(length, 95)), 3),
+            "displacement_by_structure_mm": {structure_name(s): round(float(length[labels == s].mean()), 3)
+                                             for s in np.unique(labels) if s != 0}}
+
+
+STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
