@@ -126,16 +126,21 @@ def test_known_cycle_is_tracked_within_a_millimetre_but_for_twist(shape, total_m
     assert table[:, 0].mean() < 0.4 * motion  # far better than leaving the ED mesh where it is
 
 
-def test_a_rejected_frame_keeps_its_own_mesh_and_the_next_starts_from_the_last_accepted():
+def test_a_rejected_or_invalid_frame_is_left_out_and_the_next_starts_from_the_last_accepted():
     verts, faces, labels = bent_cone()
     frames, _, _ = cine(verts, faces, labels, 6)
     # frame 2 mislabelled (lv and rv swapped, as a bad predicted mask): its fit cannot agree
     v2, f2, l2 = frames[2]
     frames[2] = (v2, f2, np.where(l2 == S["lv"], S["rv"], np.where(l2 == S["rv"], S["lv"], l2)).astype(np.uint8))
+    # frame 4 is not closed (a hole): refused before any fit, named
+    v4, f4, l4 = frames[4]
+    frames[4] = (v4, f4[10:], l4)
     fits, reports = track_frames(frames, 0, PARAMS, lambda i: np.random.default_rng(i))
-    assert fits[2] is None and not reports[2]["tracked"] and "rejected" in reports[2]
+    assert fits[2] is None and not reports[2]["tracked"] and "label agreement" in reports[2]["rejected"]
     assert reports[3]["from"] == 1  # over the rejected frame, from the last accepted one
-    assert all(fits[i] is not None for i in (1, 3, 4, 5)), [r.get("rejected") for r in reports]
+    assert fits[4] is None and "registration subject" in reports[4]["rejected"], reports[4]
+    assert reports[5]["from"] == 0  # the cycle's other way round: frame 5 neighbours frame 0
+    assert all(fits[i] is not None for i in (1, 3, 5)), [r.get("rejected") for r in reports]
 
 
 @pytest.mark.parametrize("n, reference", [(1, 0), (2, 0), (2, 1), (5, 0), (6, 2), (20, 19)])

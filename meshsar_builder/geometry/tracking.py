@@ -40,7 +40,7 @@ def visit_order(n_frames: int, reference: int) -> list[tuple[int, int]]:
     """(frame, neighbour it starts from) pairs, outward from the reference in both directions
     around the cycle (a cine series is periodic: its last frame neighbours its first), so no
     frame is more than half a cycle of warm starts from the reference (drift grows with each)."""
-    forward = (n_frames - 1 + 1) // 2  # the extra frame of an even count goes forward
+    forward = n_frames // 2  # of the other n - 1 frames; the extra one of an even count goes forward
     order = [((reference + k) % n_frames, (reference + k - 1) % n_frames) for k in range(1, forward + 1)]
     order += [((reference - k) % n_frames, (reference - k + 1) % n_frames) for k in range(1, n_frames - forward)]
     return order
@@ -51,7 +51,6 @@ def track_frames(
     reference: int,
     params: RegistrationParams,
     rng_for: Callable[[int], np.random.Generator],
-    progress: Callable[[], None] | None = None,
 ) -> tuple[list[np.ndarray | None], list[dict]]:
     """Fit every frame of one subject with its reference frame's mesh.
 
@@ -78,17 +77,15 @@ def track_frames(
         start = next(j for j in chain[neighbour] if fits[j] is not None)
         verts, faces, labels = frames[index]
         began = time.perf_counter()
-        fitted, report = register(fits[start], template_faces, verts, faces, fit_params, rng_for(index),
-                                  template_labels, labels, prealigned=True)
-        summary = {"tracked": True, "from": start, "seconds": round(time.perf_counter() - began, 3),
-                   **{k: report[k] for k in ("mean_mm", "p95_mm", "label_agreement", "nricp") if k in report},
-                   "landmark_error_mm": report.get("landmark_error_mm")}
-        try:
+        summary = {"tracked": True, "from": start}
+        try:  # an invalid frame mesh (register) or a fit outside the thresholds (accept)
+            fitted, report = register(fits[start], template_faces, verts, faces, fit_params, rng_for(index),
+                                      template_labels, labels, prealigned=True)
+            summary |= {k: report[k] for k in ("mean_mm", "p95_mm", "label_agreement", "landmark_error_mm", "nricp")
+                        if k in report}
             accept(report, fit_params)
             fits[index] = fitted
         except MeshError as e:
             summary.update(tracked=False, rejected=str(e))
-        reports[index] = summary
-        if progress is not None:
-            progress()
+        reports[index] = {**summary, "seconds": round(time.perf_counter() - began, 3)}
     return fits, reports
