@@ -7,6 +7,8 @@ TORCH_SPEC ?= torch==2.13.0
 RECIPE     ?= manifests/demo.toml
 WORKERS    ?= 2
 PYTEST_ARGS ?=
+# Test processes (pytest-xdist); a test file stays on one process, so its module fixtures are built once.
+TEST_WORKERS ?= 2
 
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
@@ -25,10 +27,10 @@ dataset: $(STAMP)
 	$(VENV)/bin/meshsar build $(RECIPE) --workers $(WORKERS)
 
 test: $(STAMP)
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow" $(PYTEST_ARGS)
 
 clean:
 	rm -rf build
