@@ -36,7 +36,7 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
     """(sample id, mesh path, metadata) of every dataset mesh, in a fixed order."""
     out = []
     for rec in results.of("ssm").values():
-        for sid, s in rec["samples"].items():
+        for sid, s in rec.get("samples", {}).items():  # the model item's (not a specificity part's)
             meta = {"source": "+".join(rec["sources"]), "subject": sid, "frame": None, "phase": "",
                     "provenance": "ssm", "subset": "ssm", "ssm_coeffs": s["coeffs"]}
             out.append((sid, str(ctx.stage_dir("ssm") / "samples" / f"{sid}.ply"), meta))

@@ -1,12 +1,15 @@
 """Stage `ssm`: the statistical shape model of the registered subjects, and its samples.
 
-One item, `model`, since every sample depends on the model: Procrustes + PCA
-over every registered subject, `ssm/model.npz` (mean, modes, variances,
-template faces, per-vertex labels), `ssm/report.json` (compactness,
-generalisation and specificity per number of modes, vertex to vertex; specificity
-from `ssm.specificity_samples` draws per mode count through the samples' own
-sampler, redraws included; per-subject registration figures), and
-`ssm/samples/<source>-ssmNNNNN.ply` for `ssm.samples` shapes. Each sample is
+Item `model` (every sample depends on the model): Procrustes + PCA over every
+registered subject, `ssm/model.npz` (mean, modes, variances, template faces,
+per-vertex labels) and `ssm/samples/<source>-ssmNNNNN.ply` for `ssm.samples`
+shapes. Items `specificity/<c>` (`ssm.specificity_items` of them, side by side
+with `model`) each build the same model and make every items-th of the
+`ssm.specificity_samples` specificity draws per mode count through the samples'
+own sampler (redraws included), from their own seed: `ssm/specificity/<c>.npz`.
+Once all are done, `ssm/report.json` (the stage's finish) holds compactness,
+generalisation and specificity per number of modes (vertex to vertex) and the
+per-subject registration figures. Each sample is
 drawn from its own seed (recipe seed, stage, sample id), so a sample does not
 change when the sample count does; self-intersecting draws are redrawn and
 counted. The model's frame is the template's (register/template.ply: canonical pose),
@@ -20,9 +23,10 @@ import dataclasses
 import numpy as np
 
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
-from meshsar_builder.geometry.ssm import build_model, quality_report, sample_valid, save_model
+from meshsar_builder.geometry.ssm import (
+    build_model, model_quality, sample_valid, save_model, specificity_draws, specificity_summary)
 from meshsar_builder.pipeline.errors import MeshError
-from meshsar_builder.pipeline.io import write_json
+from meshsar_builder.pipeline.io import atomic_path, write_json
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 from meshsar_builder.pipeline.seeding import item_rng
 
@@ -39,14 +43,21 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         return []
     template = str(ctx.stage_dir("register") / "template.ply")
     inputs = (template, *(str(ctx.stage_dir("register") / f"{i}.ply") for i in registered))
-    outputs = ("model.npz", "report.json", *(f"samples/{s}.ply" for s in sample_ids(ctx)))
+    params = dataclasses.asdict(ctx.recipe.ssm)
     fits = {i: rec["fit"] | {"subject": rec["subject"], "source": rec["source"]} for i, rec in registered.items()}
     sources = sorted({rec["source"] for rec in registered.values()})
-    return [Item("model", outputs, inputs=inputs, params=dataclasses.asdict(ctx.recipe.ssm),
-                 data={"fits": fits, "sources": sources})]
+    model = Item("model", ("model.npz", *(f"samples/{s}.ply" for s in sample_ids(ctx))), inputs=inputs,
+                 params=params, data={"fits": fits, "sources": sources})
+    return [model, *(Item(part, (f"{part}.npz",), inputs=inputs, params=params, data={})
+                     for part in specificity_parts(ctx))]
 
 
-def run(ctx: Context, item: Item) -> dict:
+def specificity_parts(ctx: Context) -> list[str]:
+    return [f"specificity/{c}" for c in range(ctx.recipe.ssm.specificity_items)]
+
+
+def _model(ctx: Context, item: Item):
+    """The shape model of the item's inputs (every item builds it alike) and the registered shapes."""
     params = ctx.recipe.ssm
     template, faces, labels = read_ply(item.inputs[0])
     shapes = np.stack([read_ply(p)[0] for p in item.inputs[1:]])
@@ -55,7 +66,19 @@ def run(ctx: Context, item: Item) -> dict:
     # The template's frame (register: the groupwise template in its canonical pose), so the
     # model's pose does not follow whichever subject was listed first.
     model = build_model(shapes, faces, params.variance, params.procrustes_iterations, labels=labels, reference=template)
-    folder = ctx.stage_dir(NAME)
+    return model, shapes
+
+
+def run(ctx: Context, item: Item) -> dict:
+    params, folder = ctx.recipe.ssm, ctx.stage_dir(NAME)
+    model, shapes = _model(ctx, item)
+    if item.id != "model":  # a share of the specificity draws: every items-th draw per mode count
+        part = int(item.id.rsplit("/", 1)[1])
+        count = len(range(part, params.specificity_samples, params.specificity_items))
+        distances, redraws = specificity_draws(model, shapes, item_rng(ctx.recipe.seed, NAME, item.id), params, count)
+        with atomic_path(folder / f"{item.id}.npz") as tmp:
+            np.savez(tmp, distances=distances, redraws=redraws)
+        return {"specificity_draws": count, "specificity_redraws": redraws}
     save_model(folder / "model.npz", model)
     samples, redraws = {}, 0
     for sid in sample_ids(ctx):
@@ -63,9 +86,8 @@ def run(ctx: Context, item: Item) -> dict:
         write_ply(folder / "samples" / f"{sid}.ply", verts, model.faces, model.labels)
         samples[sid] = {"coeffs": np.round(coeffs, 6).tolist(), "redraws": n}
         redraws += n
-    quality = quality_report(model, shapes, item_rng(ctx.recipe.seed, NAME, "quality"), params)
     report = {
-        **quality,
+        **model_quality(model, shapes, params),
         "subjects": len(shapes),
         "n_vertices": int(len(model.mean)),
         "total_variance_mm2": model.total_variance,
@@ -73,9 +95,23 @@ def run(ctx: Context, item: Item) -> dict:
         "self_intersection_redraws": redraws,
         "registration": item.data["fits"],
     }
-    write_json(folder / "report.json", report)
-    return {"sources": item.data["sources"], "samples": samples, "modes": quality["modes"],
-            "self_intersection_redraws": redraws}
+    return {"sources": item.data["sources"], "samples": samples, "modes": report["modes"],
+            "self_intersection_redraws": redraws, "report": report}
 
 
-STAGE = Stage(name=NAME, version=3, plan=plan, run=run)
+def finish(ctx: Context, results: Results) -> None:
+    """ssm/report.json: the model item's figures and the specificity of every part's draws,
+    once all of them are done (a failed part leaves no report)."""
+    records = results.of(NAME)
+    parts = specificity_parts(ctx)
+    if "model" not in records or any(part not in records for part in parts):
+        return
+    folder = ctx.stage_dir(NAME)
+    draws = [np.load(folder / f"{part}.npz") for part in parts]
+    distances = np.concatenate([d["distances"] for d in draws], axis=1)
+    summary = specificity_summary(distances, sum(int(d["redraws"]) for d in draws))
+    write_json(folder / "report.json", {**records["model"]["report"], **summary})
+
+
+# Version 4: the specificity draws in specificity_items parts side by side (each its own seed).
+STAGE = Stage(name=NAME, version=4, plan=plan, run=run, finish=finish)

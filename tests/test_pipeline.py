@@ -40,10 +40,14 @@ def test_every_stage_runs_and_the_dataset_verifies(smoke):
     report = read_json(out / "ssm" / "report.json")
     assert {"compactness", "generalisation_mm", "specificity_mm"} <= set(report)
     assert report["self_intersection_redraws"] >= 0 and report["samples"] == 4
+    # every part's specificity draws, each mode count's draws split across the parts
+    assert report["specificity_draws"] == 1000 and len(report["specificity_curve_mm"]) == report["modes"]
+    assert sorted(p.name for p in (out / "ssm" / "specificity").glob("*.npz")) == [f"{c}.npz" for c in range(4)]
     card = (out / "card" / "README.md").read_text()
-    for section in ("## Samples", "## Shape model", "## Dynamic subjects", "## Counts", "## Time per stage"):
+    for section in ("## Samples", "## Shape model", "## Dynamic subjects", "## Frames in correspondence", "## Counts",
+                    "## Time per stage"):
         assert section in card
-    for png in ("gallery.png", "ssm_variance.png", "ssm_modes.png", "cycle.png"):
+    for png in ("gallery.png", "ssm_variance.png", "ssm_modes.png", "cycle.png", "motion.png"):
         assert (out / "card" / png).stat().st_size > 1000
     split = read_json(out / "splits" / "seed-0.json")
     assert sorted(split["train"] + split["test"]) == sorted(index["samples"])

@@ -18,7 +18,7 @@ from meshsar_builder.geometry.ssm import (
     sample,
     sample_valid,
     save_model,
-    specificity,
+    specificity_draws,
 )
 from meshsar_builder.pipeline.errors import MeshError
 
@@ -190,13 +190,15 @@ def test_generalisation_drops_to_zero_with_the_true_mode_count(training):
 def test_specificity_of_model_samples_is_small_and_reported(model, training):
     shapes, _, _ = training
     params = SSMParams(specificity_samples=20)
-    mean_mm, std_mm, redraws = specificity(model, shapes, np.random.default_rng(0), params)
+    distances, redraws = specificity_draws(model, shapes, np.random.default_rng(0), params, 20)
+    mean_mm, std_mm = distances.mean(axis=1), distances.std(axis=1)
     # Samples lie in the training span; the nearest of 30 training shapes is a few mm off at most.
     assert mean_mm.shape == std_mm.shape == (3,)
     assert np.all((0.0 < mean_mm) & (mean_mm < 3.0)) and np.all(std_mm >= 0.0) and redraws >= 0
     report = quality_report(model, shapes[:10], np.random.default_rng(0), params)
     assert report["modes"] == 3 and len(report["generalisation_mm"]) == 3 and len(report["compactness"]) == 3
     assert len(report["specificity_curve_mm"]) == 3 and report["specificity_mm"] == report["specificity_curve_mm"][-1]
+    assert report["specificity_draws"] == 20
 
 
 def test_specificity_is_the_naive_nearest_training_distance_of_the_samplers_draws(model, training):
@@ -204,7 +206,7 @@ def test_specificity_is_the_naive_nearest_training_distance_of_the_samplers_draw
     shapes, _, _ = training
     shapes = shapes[:6]
     params = SSMParams(specificity_samples=5)
-    mean_mm, _, _ = specificity(model, shapes, np.random.default_rng(3), params)
+    mean_mm = specificity_draws(model, shapes, np.random.default_rng(3), params, 5)[0].mean(axis=1)
     rng = np.random.default_rng(3)
     fitted = [rigid_fit(s, model.mean) for s in shapes]
     for j in range(1, len(model.variances) + 1):
@@ -226,6 +228,7 @@ def test_specificity_is_the_naive_nearest_training_distance_of_the_samplers_draw
         ("max_redraws", -1),
         ("procrustes_iterations", 0),
         ("specificity_samples", 0),
+        ("specificity_items", 0),
     ],
 )
 def test_params_reject_bad_values_naming_the_field(field, value):

@@ -28,6 +28,7 @@ class SSMParams:
     max_redraws: redraws allowed per sample whose mesh self-intersects before it fails.
     procrustes_iterations: most generalised Procrustes iterations (stops earlier on convergence).
     specificity_samples: random shapes per number of modes for the specificity measure.
+    specificity_items: items those draws are split into (stages/ssm.py), run side by side.
     """
 
     samples: int = 48
@@ -36,6 +37,7 @@ class SSMParams:
     max_redraws: int = 20
     procrustes_iterations: int = 20
     specificity_samples: int = 1000
+    specificity_items: int = 4
 
     def __post_init__(self) -> None:
         if self.samples < 1:
@@ -50,6 +52,8 @@ class SSMParams:
             raise ValueError(f"procrustes_iterations: must be >= 1, got {self.procrustes_iterations}")
         if self.specificity_samples < 1:
             raise ValueError(f"specificity_samples: must be >= 1, got {self.specificity_samples}")
+        if not 1 <= self.specificity_items <= self.specificity_samples:
+            raise ValueError(f"specificity_items: must be in [1, specificity_samples], got {self.specificity_items}")
 
 
 @dataclass(frozen=True)
@@ -258,43 +262,55 @@ def generalisation(shapes: np.ndarray, max_modes: int, procrustes_iterations: in
     return errors.mean(axis=0)
 
 
-def specificity(
-    model: ShapeModel, shapes: np.ndarray, rng: np.random.Generator, params: SSMParams
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """Specificity (Davies; Styner et al. 2003) as a function of the number of modes.
+def specificity_draws(
+    model: ShapeModel, shapes: np.ndarray, rng: np.random.Generator, params: SSMParams, count: int
+) -> tuple[np.ndarray, int]:
+    """Draws for the specificity (Davies; Styner et al. 2003) as a function of the number of modes.
 
-    For j = 1..k modes, params.specificity_samples shapes are drawn through the dataset's
-    own sampler (sample_valid: truncated coefficients, self-intersecting draws redrawn) from
-    the model cut to its first j modes; each scores the mean vertex-to-vertex distance (mm)
-    to the nearest training shape (rigidly fitted to the model mean).
-    Returns the mean (k,) and standard deviation (k,) over the draws, and the redraws made.
+    For j = 1..k modes, `count` shapes are drawn through the dataset's own sampler
+    (sample_valid: truncated coefficients, self-intersecting draws redrawn) from the model cut
+    to its first j modes; each scores the mean vertex-to-vertex distance (mm) to the nearest
+    training shape (rigidly fitted to the model mean). shapes : (s, n, 3).
+    Returns the distances (k, count) and the redraws made.
     """
     training = np.stack([rigid_fit(shape, model.mean) for shape in np.asarray(shapes, dtype=np.float64)])
     k = len(model.variances)
-    means, stds, redraws = np.empty(k), np.empty(k), 0
+    distances, redraws = np.empty((k, count)), 0
     for j in range(1, k + 1):
         cut = ShapeModel(model.mean, model.modes[:j], model.variances[:j], model.faces, model.total_variance, model.labels)
-        distances = np.empty(params.specificity_samples)
-        for i in range(params.specificity_samples):
+        for i in range(count):
             _, verts, n = sample_valid(cut, rng, params)
             redraws += n
-            distances[i] = np.linalg.norm(training - verts, axis=2).mean(axis=1).min()
-        means[j - 1], stds[j - 1] = distances.mean(), distances.std()
-    return means, stds, redraws
+            distances[j - 1, i] = np.linalg.norm(training - verts, axis=2).mean(axis=1).min()
+    return distances, redraws
 
 
-def quality_report(model: ShapeModel, shapes: np.ndarray, rng: np.random.Generator, params: SSMParams) -> dict:
-    """The standard SSM quality measures as JSON-ready values (mm, per number of modes)."""
-    specificity_mean, specificity_std, redraws = specificity(model, shapes, rng, params)
+def model_quality(model: ShapeModel, shapes: np.ndarray, params: SSMParams) -> dict:
+    """Compactness and generalisation per number of modes (JSON-ready); shapes : (s, n, 3)."""
     return {
         "modes": int(len(model.variances)),
         "variances_mm2": model.variances.tolist(),
         "compactness": compactness(model).tolist(),
         "generalisation_mm": generalisation(shapes, len(model.variances), params.procrustes_iterations).tolist(),
-        # Per number of modes 1..k (vertex to vertex); the scalars are the full model's.
-        "specificity_curve_mm": specificity_mean.tolist(),
-        "specificity_curve_std_mm": specificity_std.tolist(),
-        "specificity_redraws": redraws,
-        "specificity_mm": float(specificity_mean[-1]),
-        "specificity_std_mm": float(specificity_std[-1]),
     }
+
+
+def specificity_summary(distances: np.ndarray, redraws: int) -> dict:
+    """Specificity per number of modes 1..k from its draws' distances (k, N) mm (JSON-ready);
+    the scalars are the full model's."""
+    mean, std = distances.mean(axis=1), distances.std(axis=1)
+    return {
+        "specificity_curve_mm": mean.tolist(),
+        "specificity_curve_std_mm": std.tolist(),
+        "specificity_draws": int(distances.shape[1]),
+        "specificity_redraws": int(redraws),
+        "specificity_mm": float(mean[-1]),
+        "specificity_std_mm": float(std[-1]),
+    }
+
+
+def quality_report(model: ShapeModel, shapes: np.ndarray, rng: np.random.Generator, params: SSMParams) -> dict:
+    """The standard SSM quality measures as JSON-ready values (mm, per number of modes), with
+    params.specificity_samples specificity draws per number of modes in one run."""
+    return model_quality(model, shapes, params) | specificity_summary(
+        *specificity_draws(model, shapes, rng, params, params.specificity_samples))
