@@ -151,7 +151,7 @@ def _ring_sectors(verts: np.ndarray, crossing: np.ndarray, labels: np.ndarray, a
     toward = verts[others if others.any() else labels != 0].mean(axis=0) - centre
     first = toward - (toward @ normal) * normal
     if np.linalg.norm(first) < 1e-6 * max(1.0, np.linalg.norm(toward)):
-        return []  # the surface's centroid on the ring's axis: no direction to count from
+        return []  # that centroid on the ring's axis: no direction to count from
     first /= np.linalg.norm(first)
     second = np.cross(normal, first)
     angle = np.arctan2((mid - centre) @ second, (mid - centre) @ first)
