@@ -7,8 +7,9 @@ TORCH_SPEC ?= torch==2.13.0
 RECIPE     ?= manifests/demo.toml
 WORKERS    ?= 2
 PYTEST_ARGS ?=
-# Test processes (pytest-xdist); a test file stays on one process, so its module fixtures are built once.
-TEST_WORKERS ?= 2
+# Test processes (pytest-xdist; logical: one per logical CPU); a test file stays on one process, so its module
+# fixtures are built once.
+TEST_WORKERS ?= logical
 
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed

@@ -118,6 +118,8 @@ def test_known_cycle_is_tracked_within_a_millimetre_but_for_twist(shape, total_m
     frames, truth, frame = cine(verts, faces, labels, 10)
     fits, reports = track_frames(frames, 0, PARAMS, lambda i: np.random.default_rng(i))
     assert all(r["tracked"] for r in reports), [r.get("rejected") for r in reports]
+    # neighbours a tenth of a cycle apart: the soft steps alone, no retry with the whole schedule
+    assert {r["stiffness_steps"] for r in reports[1:]} == {PARAMS.frame_steps}
     table = errors(fits, truth, frame)
     motion = np.mean([np.linalg.norm(t - verts, axis=1).mean() for t in truth[1:]])
     print(f"{shape.__name__}: motion {motion:.2f} mm; error per frame (total, twist, rest) mm:\n{table.round(3)}")

@@ -8,8 +8,10 @@ toward the reference: frames are visited outward from the reference, forward to 
 the series and backward to its start. The frames lie in one scanner frame, so a fit starts
 where its neighbour's ended with no pre-alignment (a similarity would take up contraction
 and twist, which are shape), and runs only the softest `frame_steps` of the stiffness
-schedule (the motion between neighbouring frames is small). A fit outside the thresholds
-(accept, with frame_min_label_agreement: a blood-pool patch is not tissue) leaves that frame with its own mesh, recorded, and the next frame starts from the
+schedule (the motion between neighbouring frames is small); one outside the thresholds (accept,
+with frame_min_label_agreement: a blood-pool patch is not tissue) is tried once more with
+the whole schedule (a large jump, as between an ED and an ES frame alone), and if that fails
+too it leaves that frame with its own mesh, recorded, and the next frame starts from the
 last accepted fit.
 """
 
@@ -26,11 +28,12 @@ from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.pipeline.errors import MeshError
 
 
-def frame_params(params: RegistrationParams) -> RegistrationParams:
-    """The registration parameters of a warm-started frame fit: the softest `frame_steps`
-    stiffness steps of the schedule (and their normal weights), with frame_ring_points points
-    along each junction ring as landmarks, judged on frame_min_label_agreement."""
-    k = params.frame_steps
+def frame_params(params: RegistrationParams, steps: int | None = None) -> RegistrationParams:
+    """The registration parameters of a warm-started frame fit: the softest `steps` (default
+    frame_steps) stiffness steps of the schedule (and their normal weights), with
+    frame_ring_points points along each junction ring as landmarks, judged on
+    frame_min_label_agreement."""
+    k = params.frame_steps if steps is None else steps
     return dataclasses.replace(params, stiffness=params.stiffness[-k:], normal_weight=params.normal_weight[-k:],
                                ring_points=params.frame_ring_points,
                                min_label_agreement=params.frame_min_label_agreement)
@@ -67,7 +70,6 @@ def track_frames(
     fits[reference] = np.asarray(template_verts, dtype=np.float64)
     reports: list[dict] = [{}] * len(frames)
     reports[reference] = {"tracked": True, "reference": True}
-    fit_params = frame_params(params)
     order = visit_order(len(frames), reference)
     chain = {reference: [reference]}  # each frame's warm-start chain back to the reference
     for index, neighbour in order:
@@ -77,15 +79,26 @@ def track_frames(
         start = next(j for j in chain[neighbour] if fits[j] is not None)
         verts, faces, labels = frames[index]
         began = time.perf_counter()
-        summary = {"tracked": True, "from": start}
-        try:  # an invalid frame mesh (register) or a fit outside the thresholds (accept)
-            fitted, report = register(fits[start], template_faces, verts, faces, fit_params, rng_for(index),
-                                      template_labels, labels, prealigned=True)
-            summary |= {k: report[k] for k in ("mean_mm", "p95_mm", "label_agreement", "landmark_error_mm", "nricp")
-                        if k in report}
-            accept(report, fit_params)
+        summary: dict = {"tracked": False, "from": start}
+        # The soft steps follow a neighbour's small motion; a fit they leave outside the
+        # thresholds (a large jump: an ED and an ES frame only) is tried once more with the
+        # whole stiffness schedule.
+        for steps in dict.fromkeys((params.frame_steps, len(params.stiffness))):
+            fit_params = frame_params(params, steps)
+            try:  # an invalid frame mesh (register) or a fit outside the thresholds (accept)
+                fitted, report = register(fits[start], template_faces, verts, faces, fit_params, rng_for(index),
+                                          template_labels, labels, prealigned=True)
+                summary |= {k: report[k] for k in ("mean_mm", "p95_mm", "label_agreement", "landmark_error_mm", "nricp")
+                            if k in report}
+                accept(report, fit_params)
+            except MeshError as e:
+                summary["rejected"] = str(e)
+                if "registration subject" in summary["rejected"]:
+                    break  # the frame's own mesh is invalid: no schedule can fit it
+                continue
             fits[index] = fitted
-        except MeshError as e:
-            summary.update(tracked=False, rejected=str(e))
+            summary.pop("rejected", None)
+            summary.update(tracked=True, stiffness_steps=steps)
+            break
         reports[index] = {**summary, "seconds": round(time.perf_counter() - began, 3)}
     return fits, reports
