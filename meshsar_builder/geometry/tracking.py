@@ -63,7 +63,8 @@ def track_frames(
     Returns per frame the fitted vertices (n, 3) (faces and labels are the reference's), or
     None where the fit was rejected, and per frame a report (JSON-ready): `tracked`, `from`
     (the frame index the fit started from), `seconds`, the fit's figures (mean_mm, p95_mm,
-    label_agreement, landmark_error_mm, nricp) and, for a rejected fit, `rejected` (the reason).
+    label_agreement, landmark_error_mm, nricp; of the last attempt), `stiffness_steps` of the
+    schedule that was accepted and, for a rejected fit, `rejected` (the reason).
     """
     template_verts, template_faces, template_labels = frames[reference]
     fits: list[np.ndarray | None] = [None] * len(frames)
