@@ -49,7 +49,7 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         outputs.append("cycle.png")
     if track is not None:
         outputs.append("motion.png")
-    return [Item("card", tuple(outputs), inputs=inputs, params={"gallery": GALLERY, "version": 2},
+    return [Item("card", tuple(outputs), inputs=inputs, params={"gallery": GALLERY, "version": 1},
                  data={"dynamic": dynamic, "timing": timing, "track": track,
                        "tracks": [[rec["reference"], len(rec["frames"]), len(rec["in_correspondence"])]
                                   for _, rec in tracks]})]

@@ -22,7 +22,7 @@ import dataclasses
 
 import numpy as np
 
-from meshsar_builder.dataset.frames import subject_series
+from meshsar_builder.dataset.frames import direct_meshes, source_cohorts, subject_series
 from meshsar_builder.geometry.meshfile import read_ply
 from meshsar_builder.pipeline.io import atomic_path
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
@@ -45,8 +45,8 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
             meta = {"source": name, "subject": sid, "frame": None, "phase": "", "provenance": "shape_model",
                     "subset": "ssm", "ssm_coeffs": s["coeffs"], "shape_model": rec["shape_model"]}
             out.append((sid, str(ctx.stage_dir("sources") / name / f"{sid}.ply"), meta))
-    cohorts = {s.name: s.cohort for s in ctx.recipe.sources if getattr(s, "cohort", "")}
-    direct = {mid: rec for mid, rec in results.of("remesh").items() if rec["use"] == "direct"}
+    cohorts = source_cohorts(ctx.recipe.sources)
+    direct = direct_meshes(results.of("remesh"))
     reference = {mid: ref for mids, ref in subject_series(direct, cohorts) for mid in mids}
     tracked = {mid: (rec, report) for rec in results.of("track").values() for mid, report in rec["frames"].items()}
     for mid, rec in direct.items():

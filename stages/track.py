@@ -21,7 +21,7 @@ import shutil
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from meshsar_builder.dataset.frames import subject_series
+from meshsar_builder.dataset.frames import direct_meshes, source_cohorts, subject_series
 from meshsar_builder.geometry.landmarks import structure_name
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.tracking import track_frames
@@ -32,14 +32,6 @@ from meshsar_builder.pipeline.seeding import item_rng
 NAME = "track"
 
 
-def direct_records(ctx: Context, results: Results) -> dict[str, dict]:
-    return {mid: rec for mid, rec in results.of("remesh").items() if rec["use"] == "direct"}
-
-
-def cohorts(ctx: Context) -> dict[str, str]:
-    return {s.name: s.cohort for s in ctx.recipe.sources if getattr(s, "cohort", "")}
-
-
 def plan(ctx: Context, results: Results) -> list[Item]:
     params = dataclasses.asdict(ctx.recipe.registration)
     remeshed = ctx.stage_dir("remesh")
@@ -47,7 +39,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         Item(f"{reference}-cycle", tuple(f"{mid}.ply" for mid in mids),
              inputs=tuple(str(remeshed / f"{mid}.ply") for mid in mids), params=params,
              data={"frames": mids, "reference": reference})
-        for mids, reference in subject_series(direct_records(ctx, results), cohorts(ctx)) if len(mids) >= 2
+        for mids, reference in subject_series(direct_meshes(results.of("remesh")), source_cohorts(ctx.recipe.sources))
+        if len(mids) >= 2
     ]
 
 

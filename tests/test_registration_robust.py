@@ -128,7 +128,9 @@ def test_the_groupwise_template_leaves_out_a_fit_far_from_the_others():
 
 @pytest.mark.parametrize("field, value", [("divergence_growth", 1.0), ("divergence_flipped", 0.0),
                                           ("retry_stiffening", 0.5), ("groupwise_max_distance_mm", 0.0),
-                                          ("landmark_outlier_mm", 0.0), ("landmark_tolerance_mm", -1.0)])
+                                          ("landmark_outlier_mm", 0.0), ("landmark_tolerance_mm", -1.0),
+                                          ("frame_steps", 0), ("frame_steps", 6), ("ring_points", -1),
+                                          ("frame_ring_points", -1), ("frame_min_label_agreement", 1.5)])
 def test_new_params_reject_bad_values_naming_the_field(field, value):
     with pytest.raises(ValueError, match=f"^{field}: "):
         RegistrationParams(**{field: value})

@@ -187,3 +187,25 @@ def test_every_frame_is_visited_once_from_a_neighbour_already_fitted(n, referenc
     for index, neighbour in order:
         depth[index] = depth[neighbour] + 1
     assert max(depth.values()) <= n // 2  # no frame more than half a cycle of warm starts away
+
+
+def test_a_frame_the_soft_steps_cannot_fit_is_tried_once_with_the_whole_schedule(monkeypatch):
+    """The first (soft) attempt is made to fail its thresholds; the retry runs the whole
+    stiffness schedule from the same start, and its fit is kept."""
+    import meshsar_builder.geometry.tracking as tracking
+
+    verts, faces, labels = bent_cone()
+    frames, _, _ = cine(verts, faces, labels, 10)
+    real, schedules = tracking.register, []
+
+    def register(*args, **kwargs):
+        fitted, report = real(*args, **kwargs)
+        schedules.append(len(args[4].stiffness))
+        if len(schedules) == 1:
+            report = {**report, "mean_mm": 9.0}  # outside max_mean_mm
+        return fitted, report
+
+    monkeypatch.setattr(tracking, "register", register)
+    fits, reports = track_frames(frames[:2], 0, PARAMS, lambda i: np.random.default_rng(i))
+    assert schedules == [PARAMS.frame_steps, len(PARAMS.stiffness)]
+    assert fits[1] is not None and reports[1]["tracked"] and reports[1]["stiffness_steps"] == len(PARAMS.stiffness)

@@ -224,6 +224,16 @@ def check_frames(items: list[LabelItem], where: str) -> None:
         ids[li.item_id] = li
 
 
+def source_cohorts(sources) -> dict[str, str]:
+    """{source name: cohort} of the recipe's sources that declare one (they share subject names)."""
+    return {s.name: s.cohort for s in sources if getattr(s, "cohort", "")}
+
+
+def direct_meshes(remeshed: dict[str, dict]) -> dict[str, dict]:
+    """The remesh records of sources with `use = "direct"` (every frame goes to the dataset)."""
+    return {mid: rec for mid, rec in remeshed.items() if rec["use"] == "direct"}
+
+
 def subject_series(records: dict[str, dict], cohorts: dict[str, str] | None = None) -> list[tuple[list[str], str]]:
     """The frames of every subject in cycle order, and its reference frame.
 

@@ -186,8 +186,8 @@ class RegistrationParams:
                              f"got {self.frame_steps}")
         if not 0 <= self.frame_min_label_agreement <= 1:
             raise ValueError(f"frame_min_label_agreement: must be in [0, 1], got {self.frame_min_label_agreement}")
-        if self.ring_points < 0 or self.frame_ring_points < 0:
-            raise ValueError(f"ring_points, frame_ring_points: must be >= 0, got {self.ring_points}, "
-                             f"{self.frame_ring_points}")
+        for key in ("ring_points", "frame_ring_points"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"{key}: must be >= 0, got {getattr(self, key)}")
         if self.distance_samples < 100:
             raise ValueError(f"distance_samples: must be >= 100, got {self.distance_samples}")
