@@ -14,6 +14,7 @@ from meshsar_builder.pipeline.io import TMP_MARK, read_json, sha256_file
 from meshsar_builder.pipeline.runner import STAGE_ORDER, build
 
 from .conftest import MANIFESTS
+from .test_quiet import caught_warnings, unexplained
 
 pytestmark = pytest.mark.slow
 
@@ -64,10 +65,14 @@ def test_reader_returns_the_meshes_and_images(smoke):
     assert json.dumps(s["meta"])
 
 
-def test_one_worker_gives_the_same_bytes(smoke, tmp_path):
+def test_one_worker_gives_the_same_bytes_and_a_quiet_console(smoke, tmp_path):
+    """Every stage in this process (workers=1): the bytes of two workers, and no warning nobody explained (test_quiet)."""
     out, _ = smoke
     one = tmp_path / "w1"
-    assert build(R.load(MANIFESTS / "smoke.toml"), one, workers=1, until="shards").failures == []
+    with caught_warnings() as caught:
+        results = build(R.load(MANIFESTS / "smoke.toml"), one, workers=1)
+    assert results.failures == [], [f"{f['stage']}/{f['item']}: {f['message']}" for f in results.failures]
+    assert unexplained(caught) == []
     for shard in sorted((out / "shards").glob("*.npz")):
         assert sha256_file(shard) == sha256_file(one / "shards" / shard.name), shard.name
     assert (out / "index.json").read_bytes() == (one / "index.json").read_bytes()
@@ -81,10 +86,13 @@ def test_rerun_skips_everything(smoke):
 
 
 def test_dask_local_cluster_gives_the_same_bytes(smoke, tmp_path):
+    """scheduler "local:N" starts its own cluster; the meshes match (the shards on Dask: the next test)."""
     out, _ = smoke
     dask = tmp_path / "dask"
-    assert build(R.load(MANIFESTS / "smoke.toml"), dask, until="shards", scheduler="local:2").failures == []
-    for name in [*(p.relative_to(out) for p in (out / "shards").glob("*.npz")), "index.json", "splits/seed-0.json"]:
+    assert build(R.load(MANIFESTS / "smoke.toml"), dask, until="remesh", scheduler="local:2").failures == []
+    meshes = sorted(p.relative_to(out) for p in (out / "remesh").glob("*.ply"))
+    assert meshes
+    for name in meshes:
         assert (dask / name).read_bytes() == (out / name).read_bytes(), name
 
 
@@ -112,6 +120,6 @@ def test_sigkilled_dask_worker_is_retried_without_duplicates(smoke, tmp_path):
         os.kill(pids[0], signal.SIGKILL)  # mid-stage: remesh items are in flight on both workers
         worker.join(timeout=600)
     assert box["r"].failures == []
-    for name in [*(p.relative_to(out) for p in (out / "shards").glob("*.npz")), "index.json"]:
+    for name in [*(p.relative_to(out) for p in (out / "shards").glob("*.npz")), "index.json", "splits/seed-0.json"]:
         assert (killed / name).read_bytes() == (out / name).read_bytes(), name
     assert not [p for p in killed.rglob("*") if TMP_MARK in p.name]

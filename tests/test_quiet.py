@@ -19,12 +19,10 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-import pytest
-
 from meshsar_builder.pipeline import recipe as R
 from meshsar_builder.pipeline.runner import build
 
-from .conftest import MANIFESTS, ROOT
+from .conftest import ROOT
 
 PROJECT = (str(ROOT / "meshsar_builder") + os.sep, str(ROOT / "stages") + os.sep)
 
@@ -105,18 +103,10 @@ spacing_mm = 1.0
 
 
 def test_meshing_at_the_demo_resolution_is_quiet(tmp_path):
+    """The whole smoke recipe's build is checked in test_pipeline (one process, beside its bytes)."""
     recipe = tmp_path / "quiet-meshes.toml"
     recipe.write_text(BEATING_AT_DEMO_RESOLUTION)
     with caught_warnings() as caught:
         results = build(R.load(recipe), tmp_path / "out", until="meshes")
     assert results.failures == []
-    assert unexplained(caught) == []
-
-
-@pytest.mark.slow
-def test_the_smoke_build_is_quiet(tmp_path):
-    """Every stage of the smoke recipe, in this process: no warning that nobody explained."""
-    with caught_warnings() as caught:
-        results = build(R.load(MANIFESTS / "smoke.toml"), tmp_path / "out", workers=1)
-    assert results.failures == [], [f"{f['stage']}/{f['item']}: {f['message']}" for f in results.failures]
     assert unexplained(caught) == []
