@@ -12,8 +12,10 @@ Outputs: `radar/<sample>.npz` with `sar` (V, C, H, W) float16, `echo`
 (V, Ex, Ey, Ef) complex64, `echo_clean` (V, Lx, Ly, Lf) complex64 (the noise-free echo on
 the loss grid), `noise_seed` (V,) uint64, `noise_sigma` (V,) float64 and `center_mm`
 (3,) float32; the sidecar holds the
-sample's metadata and per-view figures (visible facets, powers, raw SNR, image
-noise floor, seconds).
+sample's metadata and per-view figures (visible facets and scatterers, powers, raw SNR,
+image noise floor, seconds). With the diffuse part on (`[radar] diffuse`), meta
+`scatterers` names the mesh its scatterers were drawn on and seeded by
+(scatterer_mesh).
 """
 
 from __future__ import annotations
@@ -24,9 +26,11 @@ import numpy as np
 
 from meshsar_builder.dataset.frames import direct_meshes, source_cohorts, subject_series
 from meshsar_builder.geometry.meshfile import read_ply
+from meshsar_builder.pipeline.errors import MeshsarError
 from meshsar_builder.pipeline.io import atomic_path
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 from meshsar_builder.pipeline.seeding import item_rng
+from meshsar_builder.radar.diffuse import draw_scatterers
 from meshsar_builder.radar.render import render_sample
 
 NAME = "radar"
@@ -93,6 +97,19 @@ def check(ctx: Context) -> None:
         check_device(ctx.recipe.radar.device)
 
 
+def scatterer_mesh(ctx: Context, sid: str, path: str, meta: dict) -> tuple[str, str]:
+    """(id, path) of the mesh a sample's diffuse scatterers are drawn on, and seeded by.
+
+    A beating subject's frames in correspondence share its reference frame's scatterers,
+    which then move with the tissue; any other mesh (a shape-model sample, a single
+    frame, a frame whose fit was rejected) draws its own.
+    """
+    if meta.get("correspondence") in ("reference", "tracked"):
+        ref = meta["reference_frame"]
+        return ref, str(ctx.stage_dir("track") / f"{ref}.ply")
+    return sid, path
+
+
 def plan(ctx: Context, results: Results) -> list[Item]:
     params = item_params(ctx)
     remeshed = results.of("remesh")
@@ -101,7 +118,12 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         own = params
         if "reference_frame" in meta:  # the subject's shared centre: a change of it redoes the frame
             own = {**params, "center_mm": remeshed[meta["reference_frame"]]["center_mm"]}
-        items.append(Item(sid, (f"{sid}.npz",), inputs=(path,), params=own, data=meta))
+        inputs = (path,)
+        if ctx.recipe.radar.diffuse:
+            ref, ref_path = scatterer_mesh(ctx, sid, path, meta)
+            meta = {**meta, "scatterers": ref}
+            inputs += (ref_path,) if ref_path != path else ()
+        items.append(Item(sid, (f"{sid}.npz",), inputs=inputs, params=own, data=meta))
     return items
 
 
@@ -111,7 +133,15 @@ def run(ctx: Context, item: Item) -> dict:
     # frame); any other mesh in its own.
     center = np.asarray(item.params["center_mm"]) if "center_mm" in item.params else (verts.min(axis=0) + verts.max(axis=0)) / 2
     rng = item_rng(ctx.recipe.seed, NAME, item.id)
-    out = render_sample(verts - center, faces, ctx.recipe.radar, ctx.recipe.images, rng)
+    scatterers = None
+    if ctx.recipe.radar.diffuse:
+        ref_verts, ref_faces, _ = read_ply(item.inputs[-1])
+        if not np.array_equal(ref_faces, faces):
+            raise MeshsarError(f"{item.inputs[0]}: its faces differ from those of {item.inputs[-1]}, the mesh its "
+                               f"diffuse scatterers are drawn on")
+        scatterers = draw_scatterers(ref_verts, ref_faces, ctx.recipe.radar.diffuse_density_per_mm2,
+                                     item_rng(ctx.recipe.seed, "diffuse", item.data["scatterers"]))
+    out = render_sample(verts - center, faces, ctx.recipe.radar, ctx.recipe.images, rng, scatterers)
     with atomic_path(ctx.stage_dir(NAME) / f"{item.id}.npz") as tmp:
         np.savez(tmp, sar=out["sar"], echo=out["echo"], echo_clean=out["echo_clean"], noise_seed=out["noise_seed"],
                  noise_sigma=out["noise_sigma"], center_mm=center.astype(np.float32))
@@ -124,4 +154,5 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 3: echo_clean on the loss grid, and noise drawn from a stored uint64 seed per view.
 # Version 4: frames of a subject share its ED (or first) frame's centre.
 # Version 5: a beating subject's frames are its reference mesh fitted to each (stages/track.py).
-STAGE = Stage(name=NAME, version=5, plan=plan, run=run, resources=resources, check=check)
+# Version 6: the diffuse (speckle) part, scatterers shared by the frames in correspondence.
+STAGE = Stage(name=NAME, version=6, plan=plan, run=run, resources=resources, check=check)

@@ -103,7 +103,8 @@ def test_index_metadata_is_plain_json_with_the_contract_keys():
     assert set(json.loads(text)) >= {"views", "fov_mm", "image_size", "channels", "radar", "echo_grid", "loss_grid"}
     assert set(meta["radar"]) == {"f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
                                   "z0_mm", "snr_db", "image_snr_db", "rvp", "p", "kappa", "facet",
-                                  "reflectivity", "probes", "echo_decimation", "loss_decimation"}
+                                  "reflectivity", "probes", "echo_decimation", "loss_decimation", "diffuse",
+                                  "diffuse_sigma0_db", "diffuse_density_per_mm2"}
     assert meta["radar"]["loss_decimation"] == [1, 1, 4] and meta["radar"]["echo_decimation"] == [5, 5, 2]
     assert len(meta["loss_grid"]["positions_mm"]["left"]) == 80 * 80 and len(meta["loss_grid"]["frequencies_hz"]) == 16
     assert meta["radar"]["snr_db"] is None and meta["radar"]["image_snr_db"] is None
@@ -339,7 +340,7 @@ def test_render_sample_is_seeded_and_shaped():
 
 def test_decimated_echo_is_the_full_echo_on_the_echo_grid():
     verts, faces = ellipsoid(1)
-    radar = small_radar(snr_db=math.inf, views=("left",))
+    radar = small_radar(snr_db=math.inf, views=("left",), diffuse=False)  # the diffuse part: test_diffuse
     out = RR.render_sample(verts, faces, radar, ImageParams(size=8), np.random.default_rng(0))
     vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "left"))
     grid = RP.echo_grid(radar)

@@ -215,8 +215,9 @@ def _chebyshev_echo(facets, positions, centre_mm, inv_half_mm, tau_per_mm, f_cen
                     reflectivity, out):
     """Echo of every antenna into out (M, 2 N) float64 (a complex128 (M, N) viewed as floats).
 
-    facets : (7, K) rows x, y, z, nx, ny, nz, weight for point scatterers, or (13, K) with the
-    corner offsets p_0 - c, p_1 - c (rows 7-12) for the facet integral; centre_mm : (M,) R_m;
+    facets : (8, K) rows x, y, z, nx, ny, nz, |weight|, arg(weight) / 2 pi (cycles) for point
+    scatterers, or (13, K) rows x, ..., weight and the corner offsets p_0 - c, p_1 - c (rows
+    7-12) for the facet integral; centre_mm : (M,) R_m;
     coef_re, coef_im : (L, N) B_l(n'); freqs, wavenumbers (rad/mm), factor, reflectivity : (N,):
     each finished row is multiplied by factor, and a pair added exactly carries reflectivity.
     p_int >= 0: the lobe power p is that integer (< 16), done by products.
@@ -319,11 +320,12 @@ def _chebyshev_echo(facets, positions, centre_mm, inv_half_mm, tau_per_mm, f_cen
                         n_flagged += 1
                 size = LANES
             else:
+                phase = facets[7, start:stop]
                 for k in range(size):  # amplitude, phase at f_centre and t of each pair
                     r = dist[k]
                     amp = weight[k] * ((1.0 - kappa) * lobe[k] + kappa * cos_theta[k]) / (r * r)
                     tau = r * tau_per_mm
-                    cos, sin = _cos_sin(tau * (f_centre - half_slope * tau))
+                    cos, sin = _cos_sin(tau * (f_centre - half_slope * tau) + phase[k])
                     c_re[k] = amp * cos
                     c_im[k] = amp * sin
                     t[k] = (r - r_m) * inv_half_mm
@@ -444,11 +446,15 @@ def _echo_chebyshev(points, normals, weights, offsets, positions, freqs, radar):
         raise MeshsarError(_NUMBA_MISSING)
     n = len(freqs)
     df = _uniform_step(freqs)
-    rows = [points.T, normals.T, weights[None, :]]
+    # A complex weight enters as its modulus and a phase in cycles (0 for a real weight: x + 0.0
+    # is x, so real weights give the bytes they gave before phases existed).
+    rows = [points.T, normals.T, np.abs(weights)[None, :]]
     reach = 0.0  # how far a corner scatterer's range can lie from its facet's centre
     if offsets is not None:
         rows += [offsets[:, 0].T, offsets[:, 1].T]
         reach = float(np.linalg.norm(offsets, axis=2).max())
+    else:
+        rows.append((np.angle(weights) / (2 * np.pi))[None, :])
     facets = np.ascontiguousarray(np.concatenate(rows))
     positions = np.ascontiguousarray(positions)
     low, high = np.empty(len(positions)), np.empty(len(positions))
@@ -491,8 +497,8 @@ def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, pos
                freqs: np.ndarray, radar: RadarParams, method: str | None = None) -> np.ndarray:
     """Noise-free echo s(m, n) of point scatterers (DESIGN section 4), complex128 (M, N).
 
-    points : (K, 3) float mm; normals : (K, 3) float, unit; weights : (K,) float (mm^2: a
-    facet's visibility times its area); positions : (M, 3) float mm, antennas; freqs : (N,)
+    points : (K, 3) float mm; normals : (K, 3) float, unit; weights : (K,) float or complex
+    (mm^2: a facet's visibility times its area, or a diffuse scatterer's complex amplitude); positions : (M, 3) float mm, antennas; freqs : (N,)
     float Hz (uniform for "chebyshev"). method : "direct" (reference) or "chebyshev"
     (production, relative L2 error ~1e-9); default radar.echo_method. "chebyshev" gives the
     same bytes for the same arguments whatever the thread settings; an antenna's last bits
@@ -501,7 +507,8 @@ def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, pos
     """
     positions, freqs, summer = _prepared(positions, freqs, method, radar)
     points, normals = (np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in (points, normals))
-    weights = np.asarray(weights, dtype=np.float64)
+    weights = np.asarray(weights)
+    weights = weights.astype(np.complex128 if np.iscomplexobj(weights) else np.float64)
     if len(points) == 0 or len(positions) == 0:
         return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
     return summer(points, normals, weights, None, positions, freqs, radar)

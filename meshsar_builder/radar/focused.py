@@ -64,6 +64,7 @@ def radar_from_index(index: dict) -> RadarParams:
     keys = RadarParams.__dataclass_fields__.keys()
     kwargs = {k: (tuple(v) if isinstance(v, list) else v) for k, v in r.items() if k in keys}
     kwargs["views"] = tuple(v["name"] for v in index["views"])
+    kwargs.setdefault("diffuse", False)  # an index from before the diffuse part had none
     return RadarParams(**kwargs)
 
 

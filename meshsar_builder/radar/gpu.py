@@ -101,18 +101,40 @@ def echo(tri: np.ndarray, visibility: np.ndarray, positions: np.ndarray, freqs: 
     scatterers of "centroid" / "random" (default the centroids). A direct sum in float64:
     it equals the CPU production echo to its series' ~1e-9 (DESIGN section 4 allows 1e-4).
     """
-    dev = check_device(device)
     tri = np.asarray(tri, dtype=np.float64).reshape(-1, 3, 3)
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-    freqs = np.asarray(freqs, dtype=np.float64)
-    if len(tri) == 0 or len(positions) == 0:
-        return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
     centres, normals, areas = triangle_geometry(tri)
     weights = np.asarray(visibility, dtype=np.float64) * areas
     if radar.facet == "po":
-        scatterers, edges = centres, tri - centres[:, None, :]
-    else:
-        scatterers, edges = (centres if points is None else np.asarray(points, dtype=np.float64)), None
+        return _direct_sum(centres, normals, weights, tri - centres[:, None, :], positions, freqs, radar, device)
+    scatterers = centres if points is None else np.asarray(points, dtype=np.float64)
+    return _direct_sum(scatterers, normals, weights, None, positions, freqs, radar, device)
+
+
+def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, positions: np.ndarray,
+               freqs: np.ndarray, radar: RadarParams, device: str = "cuda") -> np.ndarray:
+    """radar.echo.point_echo on `device`: (M, N) complex128 of point scatterers with real or complex weights (K,).
+
+    The sum is linear in the weights, so a complex weight is its real part's echo plus j
+    times its imaginary part's (echo_chunk takes real weights).
+    """
+    weights = np.asarray(weights)
+    if not np.iscomplexobj(weights):
+        return _direct_sum(points, normals, weights.astype(np.float64), None, positions, freqs, radar, device)
+    return (_direct_sum(points, normals, weights.real, None, positions, freqs, radar, device)
+            + 1j * _direct_sum(points, normals, weights.imag, None, positions, freqs, radar, device))
+
+
+def _direct_sum(scatterers, normals, weights, edges, positions, freqs, radar: RadarParams, device: str) -> np.ndarray:
+    """The direct sum of echo_chunk over chunks on `device`: (M, N) complex128.
+
+    scatterers, normals (K, 3); weights (K,) float; edges (K, 3, 3) corner offsets for the
+    facet integral, or None for point scatterers; positions (M, 3) mm; freqs (N,) Hz.
+    """
+    dev = check_device(device)
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    freqs = np.asarray(freqs, dtype=np.float64)
+    if len(weights) == 0 or len(positions) == 0:
+        return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
     on = functools.partial(torch.as_tensor, dtype=torch.float64, device=dev)
     scatterers, normals, weights, positions_t, freqs_t = map(on, (scatterers, normals, weights, positions, freqs))
     edges = None if edges is None else on(edges)
@@ -172,6 +194,7 @@ def view_volume(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.
 
 
 def view_functions(device: str):
-    """(echo, view_volume) bound to `device`, with the signatures render_sample calls the CPU ones with."""
+    """(echo, point_echo, view_volume) bound to `device`, with the signatures render_sample calls the CPU ones with."""
     check_device(device)
-    return functools.partial(echo, device=device), functools.partial(view_volume, device=device)
+    return (functools.partial(echo, device=device), functools.partial(point_echo, device=device),
+            functools.partial(view_volume, device=device))

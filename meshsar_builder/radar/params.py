@@ -46,6 +46,14 @@ ECHO_METHODS = ("chebyshev", "direct")
 # aliases 150 mm apart); any 4 mm aperture (2, 2, *) 0 dB: an edge target's grating lobe
 # (about lambda R / 2d = 139 mm away) is as strong as the target. The limit is -25 dB.
 DEFAULT_LOSS_DECIMATION = (1, 1, 4)
+# The diffuse (speckle) part of the echo (radar.diffuse): the backscattering coefficient
+# sigma0 at normal incidence (Lambert's law) and the scatterers per mm^2 of the reference
+# surface. Chosen by measurement (docs/radar.md, Speckle): see the constants' use there.
+DEFAULT_DIFFUSE_SIGMA0_DB = 6.0
+DEFAULT_DIFFUSE_DENSITY_PER_MM2 = 0.25
+# Beyond this the echo's cost (linear in the scatterers) is out of proportion: 20 per mm^2
+# is ~300 per resolution cell of the default scan.
+MAX_DIFFUSE_DENSITY_PER_MM2 = 20.0
 # Where the echo and imaging of a view run: "cpu" (the numba echo and numpy imaging, the
 # default, whose bytes the demo shards pin) or a CUDA device through torch (radar/gpu.py).
 DEVICE_RE = re.compile(r"^(cpu|cuda|cuda:[0-9]+)$")
@@ -101,6 +109,9 @@ class RadarParams:
     loss_decimation: tuple[int, ...] = DEFAULT_LOSS_DECIMATION
     echo_method: str = "chebyshev"
     device: str = "cpu"
+    diffuse: bool = True
+    diffuse_sigma0_db: float = DEFAULT_DIFFUSE_SIGMA0_DB
+    diffuse_density_per_mm2: float = DEFAULT_DIFFUSE_DENSITY_PER_MM2
 
     def __post_init__(self):
         for name in ("f0_hz", "slope_hz_per_s", "fs_hz", "t0_s", "step_mm", "z0_mm", "p", "kappa"):
@@ -137,8 +148,17 @@ class RadarParams:
             if view not in VIEW_FRAMES:
                 raise invalid("views", f"unknown view {view!r} (known: {', '.join(VIEW_FRAMES)})", views)
         object.__setattr__(self, "views", views)
-        if not isinstance(self.rvp, bool):
-            raise invalid("rvp", "must be true or false", self.rvp)
+        for name in ("rvp", "diffuse"):
+            if not isinstance(getattr(self, name), bool):
+                raise invalid(name, "must be true or false", getattr(self, name))
+        for name in ("diffuse_sigma0_db", "diffuse_density_per_mm2"):
+            _as_float(self, name)
+        if not math.isfinite(self.diffuse_sigma0_db):
+            raise invalid("diffuse_sigma0_db", "must be finite (diffuse = false turns the diffuse part off)",
+                          self.diffuse_sigma0_db)
+        if not 0 < self.diffuse_density_per_mm2 <= MAX_DIFFUSE_DENSITY_PER_MM2:
+            raise invalid("diffuse_density_per_mm2", f"must lie in (0, {MAX_DIFFUSE_DENSITY_PER_MM2:g}]",
+                          self.diffuse_density_per_mm2)
         for name, allowed in (("facet", FACET_MODELS), ("reflectivity", REFLECTIVITIES), ("probes", PROBES),
                               ("echo_method", ECHO_METHODS)):
             if getattr(self, name) not in allowed:
@@ -239,7 +259,7 @@ def index_metadata(radar: RadarParams, images: ImageParams) -> dict:
     """
     radar_keys = ("f0_hz", "slope_hz_per_s", "fs_hz", "n_samples", "t0_s", "aperture", "step_mm",
                   "z0_mm", "snr_db", "image_snr_db", "rvp", "p", "kappa", "facet", "reflectivity", "probes",
-                  "echo_decimation", "loss_decimation")
+                  "echo_decimation", "loss_decimation", "diffuse", "diffuse_sigma0_db", "diffuse_density_per_mm2")
     radar_dict = {key: getattr(radar, key) for key in radar_keys}
     for key in ("aperture", "echo_decimation", "loss_decimation"):
         radar_dict[key] = list(radar_dict[key])

@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 
-from meshsar_builder.radar.echo import echo
+from meshsar_builder.radar.diffuse import Scatterers, draw_scatterers, lambert, place
+from meshsar_builder.radar.echo import echo, point_echo
 from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images
 from meshsar_builder.radar.noise import add_noise, draw_seeds, unit_noise
 from meshsar_builder.radar.params import (
@@ -36,28 +37,36 @@ def noise_scale(signal_power: float, signal_peak: float, noise_rms: float, radar
 
 
 def view_functions(device: str):
-    """(echo, view_volume) of a view for radar.device: the numba echo and numpy imaging on "cpu", else torch's.
+    """(echo, point_echo, view_volume) of a view for radar.device: the numba echoes and numpy imaging on "cpu", else torch's.
 
     The torch module is imported only for a CUDA device, so a CPU build never needs torch.
-    Both pairs take and return numpy arrays; visibility (Embree) and the noise stay on the
-    CPU either way.
+    All take and return numpy arrays; visibility (Embree), the diffuse scatterers and the
+    noise stay on the CPU either way.
     """
     if device == "cpu":
-        return echo, view_volume
+        return echo, point_echo, view_volume
     from meshsar_builder.radar import gpu
 
     return gpu.view_functions(device)
 
 
 def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, images: ImageParams,
-                  rng: np.random.Generator) -> dict:
+                  rng: np.random.Generator, scatterers: Scatterers | None = None) -> dict:
     """SAR images, decimated echo and the loss grid's noise-free echo of one mesh for every view of `radar`.
 
     verts : (n, 3) float mm, heart frame; faces : (F, 3) int; rng : the sample's
-    generator (seeding.item_rng(seed, "radar", sample_id)). Random scatterers are
-    drawn from rng first, then one uint64 noise seed per view (radar.noise.draw_seeds):
-    each (sample, view) has its own noise stream, radar.noise.unit_noise of its seed on
-    the full grid, which a reader regenerates from the seed alone.
+    generator (seeding.item_rng(seed, "radar", sample_id)). Random facet points
+    (facet "random") are drawn from rng first, then one uint64 noise seed per view
+    (radar.noise.draw_seeds): each (sample, view) has its own noise stream,
+    radar.noise.unit_noise of its seed on the full grid, which a reader regenerates from
+    the seed alone.
+
+    scatterers : the diffuse part's scatterers (radar.diffuse), drawn on a mesh with these
+    faces (the subject's reference frame, stages/radar.py); None draws them on this mesh
+    from a generator spawned from rng, which leaves rng's own stream (the noise seeds) as
+    it was. With radar.diffuse false there is no diffuse part and the bytes are those of
+    the specular echo alone. The diffuse echo of the scatterers on visible facets (weight
+    times the host facet's visibility, Lambert's law) is added to the facet echo.
 
     The noise is drawn with unit power and imaged on its own (imaging is linear), so
     each view knows its image-domain noise floor and can scale the noise to
@@ -68,9 +77,10 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     the full echo computed for the images: no extra echo cost), `noise_seed` (V,) uint64,
     `noise_sigma` (V,) float64 (0 without noise), and `views`: per view a dict of `name`,
     `visible_facets` (V_k > 0), `visible_area_mm2` (sum of V_k area_k), `signal_power`
-    and `noise_power` (mean per raw sample), `raw_snr_db`, `noise_floor_db` (the image
-    noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
-    and `seconds` for visibility, echo and imaging.
+    and `noise_power` (mean per raw sample), `diffuse_power` (the diffuse echo's own mean
+    power; null without it) and `visible_scatterers`, `raw_snr_db`, `noise_floor_db` (the
+    image noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
+    and `seconds` for visibility, echo (specular), diffuse and imaging.
 
     radar.device picks where each view's echo and imaging run (view_functions); the noise
     is drawn here on the CPU from rng either way, so a CUDA build differs from a CPU
@@ -80,6 +90,11 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     tri = verts[faces]
     areas = facet_geometry(verts, faces)[2]
     points = scatterer_points(verts, faces, radar.facet, rng)
+    diffuse = None
+    if radar.diffuse:
+        if scatterers is None:
+            scatterers = draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, rng.spawn(1)[0])
+        diffuse = (*place(verts, faces, scatterers, radar), scatterers.face)
     seeds = draw_seeds(rng, len(radar.views))
     intersector = embree_intersector(verts, faces)
     freqs = frequencies(radar)
@@ -88,14 +103,25 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     keep_loss = np.ix_(*grid_indices(radar, radar.loss_decimation))
     shape = (*radar.aperture, radar.n_samples)
     noisy = radar.snr_db != math.inf and radar.image_snr_db != math.inf
-    view_echo, volume_of = view_functions(radar.device)
+    view_echo, view_point_echo, volume_of = view_functions(radar.device)
     sar, decimated, clean, sigmas, stats = [], [], [], [], []
     for view, seed in zip(radar.views, seeds):
         t0 = time.perf_counter()
         vis, rays = visibility(verts, faces, probe_points(radar, view), intersector)
         t1 = time.perf_counter()
         seen = vis > 0
-        signal = view_echo(tri[seen], vis[seen], aperture_positions(radar, view), freqs, radar, points=points[seen])
+        positions = aperture_positions(radar, view)
+        signal = view_echo(tri[seen], vis[seen], positions, freqs, radar, points=points[seen])
+        t_diffuse = time.perf_counter()
+        diffuse_power, n_scatterers = None, 0
+        if diffuse is not None:
+            at, normals, weights, host = diffuse
+            lit = vis[host] > 0
+            n_scatterers = int(lit.sum())
+            diffuse_echo = view_point_echo(at[lit], normals[lit], weights[lit] * vis[host[lit]], positions, freqs,
+                                           lambert(radar))
+            diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
+            signal = signal + diffuse_echo
         signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
         noise = unit_noise(shape, seed) if noisy else None
@@ -119,10 +145,11 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         noise_power = sigma**2
         stats.append({
             "name": view, "visible_facets": int(seen.sum()), "visible_area_mm2": float(vis @ areas),
-            "signal_power": signal_power, "noise_power": noise_power,
+            "signal_power": signal_power, "noise_power": noise_power, "diffuse_power": diffuse_power,
+            "visible_scatterers": n_scatterers,
             "raw_snr_db": 10 * math.log10(signal_power / noise_power) if noise_power > 0 and signal_power > 0 else None,
             "noise_floor_db": floor_db, "rays": rays,
-            "seconds": {"visibility": t1 - t0, "echo": t2 - t1, "imaging": t3 - t2},
+            "seconds": {"visibility": t1 - t0, "echo": t_diffuse - t1, "diffuse": t2 - t_diffuse, "imaging": t3 - t2},
         })
     return {
         "sar": np.stack(sar).astype(np.float16),

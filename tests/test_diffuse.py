@@ -1,0 +1,252 @@
+"""The echo's diffuse (speckle) part (radar/diffuse.py, issue 29): scatterers, echo, and speckle statistics.
+
+Statistics are taken as issue 29 asks: on the linear intensity |I|^2 of the focused volume at
+the plate's range, a PSF width away from the edges, one sample per resolution cell, pooled
+over seeds, window "none".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from scipy import stats
+
+import meshsar_builder.radar.diffuse as RD
+import meshsar_builder.radar.echo as RE
+import meshsar_builder.radar.params as RP
+import meshsar_builder.radar.render as RR
+import meshsar_builder.radar.visibility as RV
+from meshsar_builder.radar.imaging import ImageParams, pixel_centres, range_slices, view_volume
+
+SEEDS = range(5)
+IMAGES = ImageParams(window="none")
+
+
+def plate(width_mm: float, height_mm: float, step_mm: float = 2.0, jitter: float = 0.0, seed: int = 0):
+    """A flat plate in the anterior view's (u, v) plane at w = 0, facing the radar: verts (n, 3), faces (F, 3).
+
+    jitter moves interior vertices in the plane by up to that fraction of the step: another
+    tessellation of the same plate.
+    """
+    nu, nv = int(round(width_mm / step_mm)) + 1, int(round(height_mm / step_mm)) + 1
+    u, v = np.meshgrid(np.linspace(-width_mm / 2, width_mm / 2, nu), np.linspace(-height_mm / 2, height_mm / 2, nv),
+                       indexing="ij")
+    if jitter:
+        rng = np.random.default_rng(seed)
+        inner = np.zeros_like(u, dtype=bool)
+        inner[1:-1, 1:-1] = True
+        u = u + inner * rng.uniform(-jitter, jitter, u.shape) * step_mm
+        v = v + inner * rng.uniform(-jitter, jitter, v.shape) * step_mm
+    frame = RP.view_frame("anterior")
+    verts = u.reshape(-1, 1) * frame[0] + v.reshape(-1, 1) * frame[1]
+    idx = np.arange(nu * nv).reshape(nu, nv)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    _, normals, _ = RV.facet_geometry(verts, faces)
+    back = normals @ frame[2] < 0
+    faces[back] = faces[back][:, ::-1]
+    return verts, faces
+
+
+def diffuse_volume(verts, faces, seed, radar=None, images=IMAGES):
+    """The focused volume (S, H, W) of the plate's diffuse echo alone (every scatterer seen), anterior view."""
+    radar = radar or RP.RadarParams()
+    scatterers = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(seed))
+    points, normals, weights = RD.place(verts, faces, scatterers, radar)
+    freqs = RP.frequencies(radar)
+    echo = RE.point_echo(points, normals, weights, RP.aperture_positions(radar, "anterior"), freqs, RD.lambert(radar))
+    x, y = RP.aperture_axes(radar)
+    return view_volume(echo.reshape(*radar.aperture, -1), freqs, x, y, radar.z0_mm, images)
+
+
+def plate_slice(volume, radar=None, images=IMAGES):
+    """|I|^2 (H, W) at the plate's range slice (w = 0)."""
+    radar = radar or RP.RadarParams()
+    d = range_slices(radar.z0_mm, images.fov_mm, RP.frequencies(radar))
+    return np.abs(volume[int(np.argmin(np.abs(d - radar.z0_mm)))].astype(np.complex128)) ** 2
+
+
+def resolution_mm(radar=None) -> float:
+    """The cross-range resolution lambda_min z0 / (2 L) of the full aperture L (first null of the PSF)."""
+    radar = radar or RP.RadarParams()
+    wavelength = RP.SPEED_OF_LIGHT_M_PER_S * 1e3 / RP.frequencies(radar).max()
+    return wavelength * radar.z0_mm / (2 * radar.aperture[0] * radar.step_mm)
+
+
+def interior(intensity, width_mm, height_mm, images=IMAGES, margin_mm=None):
+    """Pixels of the plate a PSF width from its edges, one per resolution cell (every 3rd pixel at the defaults)."""
+    margin_mm = 2 * resolution_mm() if margin_mm is None else margin_mm
+    u, v = pixel_centres(images.size, images.fov_mm)
+    keep_u, keep_v = np.abs(u) < width_mm / 2 - margin_mm, np.abs(v) < height_mm / 2 - margin_mm
+    step = max(1, math.ceil(resolution_mm() / (images.fov_mm / images.size)))
+    return intensity[np.ix_(keep_v, keep_u)][::step, ::step]
+
+
+# ------------------------------------------------------------------ scatterers
+
+
+def test_scatterers_follow_the_area_whatever_the_tessellation():
+    """The count is density x area (within one scatterer) on two tessellations; every point lies in its face."""
+    for jitter in (0.0, 0.3):
+        verts, faces = plate(100.0, 60.0, step_mm=2.0 if not jitter else 3.0, jitter=jitter)
+        area = trimesh.Trimesh(verts, faces, process=False).area
+        s = RD.draw_scatterers(verts, faces, 0.25, np.random.default_rng(1))
+        assert abs(len(s.face) - 0.25 * area) <= 1
+        assert np.all(s.bary >= 0) and np.allclose(s.bary.sum(axis=1), 1)
+        # no clumps: every 20 x 20 mm patch holds its share within a few scatterers
+        points, _, _ = RD.place(verts, faces, s, RP.RadarParams())
+        u = points @ RP.view_frame("anterior")[0]
+        counts = np.histogram(u, bins=5, range=(-50, 50))[0]
+        assert np.all(np.abs(counts - 0.25 * area / 5) <= 0.25 * area / 5 * 0.15)
+
+
+def test_same_seed_same_scatterers_and_frames_move_them_with_the_surface():
+    verts, faces = plate(60.0, 40.0)
+    a = RD.draw_scatterers(verts, faces, 0.5, np.random.default_rng(7))
+    b = RD.draw_scatterers(verts, faces, 0.5, np.random.default_rng(7))
+    assert all(np.array_equal(x, y) for x, y in zip(dataclasses.astuple(a), dataclasses.astuple(b)))
+    radar = RP.RadarParams()
+    points, _, weights = RD.place(verts, faces, a, radar)
+    # another frame: the same faces stretched 2x along u; scatterers keep their barycentric place
+    stretched = verts * np.array([2.0, 1.0, 1.0])
+    moved, _, stretched_weights = RD.place(stretched, faces, a, radar)
+    np.testing.assert_allclose(moved, points * np.array([2.0, 1.0, 1.0]), atol=1e-9)
+    # the amplitude follows the local area change: twice the area, twice the power
+    np.testing.assert_allclose(np.abs(stretched_weights) ** 2, 2 * np.abs(weights) ** 2, rtol=1e-12)
+    # the expected power is beta x area, whatever the density
+    area = trimesh.Trimesh(verts, faces, process=False).area
+    dense = RD.draw_scatterers(verts, faces, 4.0, np.random.default_rng(3))
+    for s in (a, dense):
+        power = np.sum(np.abs(RD.place(verts, faces, s, radar)[2]) ** 2)
+        expected = RD.mean_power_per_area(radar) * area
+        assert power == pytest.approx(expected, rel=5 / math.sqrt(len(s.face)))
+
+
+def test_scatterers_refuse_a_mesh_with_other_faces():
+    verts, faces = plate(20.0, 20.0)
+    s = RD.draw_scatterers(verts, faces, 1.0, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="faces: the scatterers were drawn on a mesh of"):
+        RD.place(verts, faces[:-2], s, RP.RadarParams())
+
+
+def test_bad_diffuse_keys_name_the_key():
+    with pytest.raises(ValueError, match="diffuse_density_per_mm2: must lie in"):
+        RP.RadarParams(diffuse_density_per_mm2=0.0)
+    with pytest.raises(ValueError, match="diffuse_sigma0_db: must be finite"):
+        RP.RadarParams(diffuse_sigma0_db=-math.inf)
+    with pytest.raises(ValueError, match="diffuse: must be true or false"):
+        RP.RadarParams(diffuse="yes")
+
+
+# ------------------------------------------------------------------ the echo
+
+
+def test_complex_weights_match_the_direct_sum():
+    """The production kernel's phase row against the direct sum's complex weights."""
+    radar = RP.RadarParams(aperture=(12, 12), step_mm=8.0)
+    verts, faces = plate(60.0, 60.0, step_mm=4.0)
+    s = RD.draw_scatterers(verts, faces, 0.3, np.random.default_rng(2))
+    points, normals, weights = RD.place(verts + np.array([3.0, 5.0, -2.0]), faces, s, radar)
+    args = (points, normals, weights, RP.aperture_positions(radar, "anterior"), RP.frequencies(radar),
+            RD.lambert(radar))
+    fast, direct = RE.point_echo(*args, method="chebyshev"), RE.point_echo(*args, method="direct")
+    assert np.linalg.norm(fast - direct) / np.linalg.norm(direct) <= 1e-8
+    # linear in the weights: a real weight's echo is the complex one's with a zero phase
+    real = RE.point_echo(points, normals, np.abs(weights), *args[3:])
+    rotated = RE.point_echo(points, normals, np.abs(weights) * np.exp(0.7j), *args[3:])
+    np.testing.assert_allclose(rotated, real * np.exp(0.7j), rtol=0, atol=1e-9 * np.abs(real).max())
+
+
+def test_render_adds_the_diffuse_echo_and_off_gives_the_specular_bytes():
+    verts = trimesh.creation.icosphere(2, radius=40.0).vertices * np.array([1.0, 0.8, 1.2])
+    faces = trimesh.creation.icosphere(2, radius=40.0).faces
+    radar = RP.RadarParams(aperture=(12, 10), step_mm=10.0, n_samples=24, echo_decimation=(1, 1, 1),
+                           loss_decimation=(1, 1, 1), image_snr_db=math.inf, views=("left",))
+    images = ImageParams(size=16)
+    off = RR.render_sample(verts, faces, dataclasses.replace(radar, diffuse=False), images, np.random.default_rng(5))
+    again = RR.render_sample(verts, faces, dataclasses.replace(radar, diffuse=False, diffuse_sigma0_db=-3.0),
+                             images, np.random.default_rng(5))
+    on = RR.render_sample(verts, faces, radar, images, np.random.default_rng(5))
+    # off: the same bytes whatever the diffuse keys; the noise seeds do not move when it is on
+    assert off["sar"].tobytes() == again["sar"].tobytes() and off["echo"].tobytes() == again["echo"].tobytes()
+    assert off["views"][0]["diffuse_power"] is None and np.array_equal(off["noise_seed"], on["noise_seed"])
+    # on: the specular echo plus the scatterers' own echo, visibility-weighted, under Lambert's law
+    s = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(5).spawn(1)[0])
+    points, normals, weights = RD.place(verts, faces, s, radar)
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "left"))
+    lit = vis[s.face] > 0
+    diffuse = RE.point_echo(points[lit], normals[lit], weights[lit] * vis[s.face][lit],
+                            RP.aperture_positions(radar, "left"), RP.frequencies(radar), RD.lambert(radar),
+                            method="direct")
+    got = on["echo_clean"][0].reshape(diffuse.shape) - off["echo_clean"][0].reshape(diffuse.shape)
+    assert np.linalg.norm(got - diffuse) / np.linalg.norm(diffuse) <= 1e-5
+    assert on["views"][0]["visible_scatterers"] == lit.sum() > 0
+
+
+# ------------------------------------------------------------------ speckle statistics
+
+
+@pytest.fixture(scope="module")
+def plates():
+    """|I|^2 at the plate's range for a 100 x 60 mm plate and the same plate twice as tall, per seed."""
+    small, large = plate(100.0, 60.0), plate(100.0, 120.0)
+    return {name: [plate_slice(diffuse_volume(*mesh, seed)) for seed in SEEDS]
+            for name, mesh in (("small", small), ("large", large))}
+
+
+def test_diffuse_plate_speckle_is_fully_developed(plates):
+    """Contrast std / mean of intensity 1 +- 0.1; amplitude Rayleigh (Lilliefors-type: scale estimated)."""
+    pooled = np.concatenate([interior(i, 100.0, 60.0).ravel() for i in plates["small"]])
+    pooled = pooled / pooled.mean()
+    assert len(pooled) >= 1000
+    assert pooled.std() / pooled.mean() == pytest.approx(1.0, abs=0.1)
+    # |I|^2 exponential <=> |I| Rayleigh; the scale is fitted, so the null distribution is simulated
+    fit = stats.goodness_of_fit(stats.expon, pooled, known_params={"loc": 0.0}, statistic="ks",
+                                n_mc_samples=199, rng=np.random.default_rng(0))
+    assert fit.pvalue > 0.01, fit
+
+
+def test_twice_the_plate_twice_the_power_same_mean_intensity(plates):
+    small = np.mean([i.sum() for i in plates["small"]])
+    large = np.mean([i.sum() for i in plates["large"]])
+    assert 10 * math.log10(large / small) == pytest.approx(3.0, abs=0.5)
+    mean_small = np.mean([interior(i, 100.0, 60.0).mean() for i in plates["small"]])
+    mean_large = np.mean([interior(i, 100.0, 120.0).mean() for i in plates["large"]])
+    assert abs(10 * math.log10(mean_large / mean_small)) <= 0.5
+
+
+def fwhm_mm(profile: np.ndarray, spacing_mm: float) -> float:
+    """Full width at half maximum of a peaked profile (linear interpolation between samples)."""
+    peak = int(np.argmax(profile))
+    half = profile[peak] / 2
+    right = peak + np.argmax(profile[peak:] < half)
+    left = peak - np.argmax(profile[peak::-1] < half)
+    r = right - 1 + (profile[right - 1] - half) / (profile[right - 1] - profile[right])
+    lo = left + 1 - (profile[left + 1] - half) / (profile[left + 1] - profile[left])
+    return (r - lo) * spacing_mm
+
+
+def test_speckle_grain_is_the_psf(plates):
+    """Autocovariance of the mean-subtracted intensity: FWHM within 25 % of the PSF intensity's -3 dB width."""
+    radar, pixel = RP.RadarParams(), IMAGES.fov_mm / IMAGES.size
+    freqs = RP.frequencies(radar)
+    point = RE.point_echo(np.zeros((1, 3)), RP.view_frame("anterior")[2][None], [1.0],
+                          RP.aperture_positions(radar, "anterior"), freqs, RD.lambert(radar))
+    psf = plate_slice(view_volume(point.reshape(*radar.aperture, -1), freqs, *RP.aperture_axes(radar), radar.z0_mm,
+                                  IMAGES))
+    centre = np.unravel_index(np.argmax(psf), psf.shape)
+    psf_width = fwhm_mm(psf[centre[0]], pixel)
+    u, v = pixel_centres(IMAGES.size, IMAGES.fov_mm)
+    inside = np.ix_(np.abs(v) < 30.0 - 2 * resolution_mm(), np.abs(u) < 50.0 - 2 * resolution_mm())
+    widths = []
+    for intensity in plates["small"]:
+        centred = intensity[inside] - intensity[inside].mean()  # every pixel: the grain is a few pixels wide
+        spectrum = np.abs(np.fft.fft2(centred, s=[2 * n for n in centred.shape])) ** 2
+        autocov = np.fft.fftshift(np.real(np.fft.ifft2(spectrum)))
+        row = autocov[autocov.shape[0] // 2]
+        widths.append(fwhm_mm(row, pixel))
+    assert np.mean(widths) == pytest.approx(psf_width, rel=0.25)
