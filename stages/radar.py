@@ -146,8 +146,14 @@ def run(ctx: Context, item: Item) -> dict:
         np.savez(tmp, sar=out["sar"], echo=out["echo"], echo_clean=out["echo_clean"], noise_seed=out["noise_seed"],
                  noise_sigma=out["noise_sigma"], center_mm=center.astype(np.float32))
     # The image noise floor per view travels with the sample (shards' meta, the card).
-    meta = {**item.data, "noise_floor_db": [v["noise_floor_db"] for v in out["views"]]}
-    return {"meta": meta, "center_mm": center.tolist(), "views": out["views"], "device": ctx.recipe.radar.device}
+    meta = {**item.data, "noise_floor_db": [v["noise_floor_db"] for v in out["views"]],
+            # what each view's images look like against the mesh (speckle share, glints, depth), for the card
+            "appearance": [{k: round(x, 4) if isinstance(x, float) else x for k, x in v["appearance"].items()}
+                           for v in out["views"]]}
+    # `mesh`: the sample's own mesh among the inputs (the shards stage reads it; a frame's
+    # reference mesh may be an input too, for its scatterers).
+    return {"meta": meta, "mesh": item.inputs[0], "center_mm": center.tolist(), "views": out["views"],
+            "device": ctx.recipe.radar.device}
 
 
 # Version 2: the physical-optics facet echo and the image-domain noise floor (image_snr_db).

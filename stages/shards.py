@@ -32,13 +32,12 @@ NAME = SHARD_DIR  # the stage folder is the index's shard folder
 
 def plan(ctx: Context, results: Results) -> list[Item]:
     radar = ctx.stage_dir("radar")
-    samples = [(sid, str(radar / f"{sid}.npz"), rec["inputs"], rec["meta"]) for sid, rec in results.of("radar").items()]
+    samples = [(sid, str(radar / f"{sid}.npz"), rec["mesh"], rec["meta"]) for sid, rec in results.of("radar").items()]
     size = ctx.recipe.shards.shard_size
     items = []
     for k in range(0, len(samples), size):
         chunk = samples[k : k + size]
-        # The radar item's only input is the sample's mesh: its path is the sidecar's one input key.
-        inputs = tuple(p for _, npz, mesh, _ in chunk for p in (npz, *mesh))
+        inputs = tuple(p for _, npz, mesh, _ in chunk for p in (npz, mesh))
         params = {"format_version": FORMAT_VERSION, "samples": [{"id": sid, "meta": meta} for sid, _, _, meta in chunk]}
         items.append(Item(f"shard-{k // size:05d}", (f"shard-{k // size:05d}.npz",), inputs=inputs, params=params))
     return items

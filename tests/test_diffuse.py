@@ -20,70 +20,22 @@ import meshsar_builder.radar.echo as RE
 import meshsar_builder.radar.params as RP
 import meshsar_builder.radar.render as RR
 import meshsar_builder.radar.visibility as RV
-from meshsar_builder.radar.imaging import ImageParams, pixel_centres, range_slices, view_volume
+from meshsar_builder.bench import speckle as SP
+from meshsar_builder.radar.imaging import ImageParams
 
 SEEDS = range(5)
-IMAGES = ImageParams(window="none")
 
 
-def plate(width_mm: float, height_mm: float, step_mm: float = 2.0, jitter: float = 0.0, seed: int = 0):
-    """A flat plate in the anterior view's (u, v) plane at w = 0, facing the radar: verts (n, 3), faces (F, 3).
-
-    jitter moves interior vertices in the plane by up to that fraction of the step: another
-    tessellation of the same plate.
-    """
-    nu, nv = int(round(width_mm / step_mm)) + 1, int(round(height_mm / step_mm)) + 1
-    u, v = np.meshgrid(np.linspace(-width_mm / 2, width_mm / 2, nu), np.linspace(-height_mm / 2, height_mm / 2, nv),
-                       indexing="ij")
+def plate(width_mm, height_mm, step_mm=2.0, jitter=0.0, seed=0):
+    """speckle.plate, its interior vertices moved in the plane by up to jitter steps: another tessellation."""
+    verts, faces = SP.plate(width_mm, height_mm, step_mm)
     if jitter:
-        rng = np.random.default_rng(seed)
-        inner = np.zeros_like(u, dtype=bool)
-        inner[1:-1, 1:-1] = True
-        u = u + inner * rng.uniform(-jitter, jitter, u.shape) * step_mm
-        v = v + inner * rng.uniform(-jitter, jitter, v.shape) * step_mm
-    frame = RP.view_frame("anterior")
-    verts = u.reshape(-1, 1) * frame[0] + v.reshape(-1, 1) * frame[1]
-    idx = np.arange(nu * nv).reshape(nu, nv)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-    _, normals, _ = RV.facet_geometry(verts, faces)
-    back = normals @ frame[2] < 0
-    faces[back] = faces[back][:, ::-1]
+        frame = RP.view_frame("anterior")
+        u, v = verts @ frame[0], verts @ frame[1]
+        inner = (np.abs(u) < width_mm / 2 - 1e-6) & (np.abs(v) < height_mm / 2 - 1e-6)
+        shift = np.random.default_rng(seed).uniform(-jitter, jitter, (len(verts), 2)) * step_mm * inner[:, None]
+        verts = verts + shift[:, :1] * frame[0] + shift[:, 1:] * frame[1]
     return verts, faces
-
-
-def diffuse_volume(verts, faces, seed, radar=None, images=IMAGES):
-    """The focused volume (S, H, W) of the plate's diffuse echo alone (every scatterer seen), anterior view."""
-    radar = radar or RP.RadarParams()
-    scatterers = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(seed))
-    points, normals, weights = RD.place(verts, faces, scatterers, radar)
-    freqs = RP.frequencies(radar)
-    echo = RE.point_echo(points, normals, weights, RP.aperture_positions(radar, "anterior"), freqs, RD.lambert(radar))
-    x, y = RP.aperture_axes(radar)
-    return view_volume(echo.reshape(*radar.aperture, -1), freqs, x, y, radar.z0_mm, images)
-
-
-def plate_slice(volume, radar=None, images=IMAGES):
-    """|I|^2 (H, W) at the plate's range slice (w = 0)."""
-    radar = radar or RP.RadarParams()
-    d = range_slices(radar.z0_mm, images.fov_mm, RP.frequencies(radar))
-    return np.abs(volume[int(np.argmin(np.abs(d - radar.z0_mm)))].astype(np.complex128)) ** 2
-
-
-def resolution_mm(radar=None) -> float:
-    """The cross-range resolution lambda_min z0 / (2 L) of the full aperture L (first null of the PSF)."""
-    radar = radar or RP.RadarParams()
-    wavelength = RP.SPEED_OF_LIGHT_M_PER_S * 1e3 / RP.frequencies(radar).max()
-    return wavelength * radar.z0_mm / (2 * radar.aperture[0] * radar.step_mm)
-
-
-def interior(intensity, width_mm, height_mm, images=IMAGES, margin_mm=None):
-    """Pixels of the plate a PSF width from its edges, one per resolution cell (every 3rd pixel at the defaults)."""
-    margin_mm = 2 * resolution_mm() if margin_mm is None else margin_mm
-    u, v = pixel_centres(images.size, images.fov_mm)
-    keep_u, keep_v = np.abs(u) < width_mm / 2 - margin_mm, np.abs(v) < height_mm / 2 - margin_mm
-    step = max(1, math.ceil(resolution_mm() / (images.fov_mm / images.size)))
-    return intensity[np.ix_(keep_v, keep_u)][::step, ::step]
 
 
 # ------------------------------------------------------------------ scatterers
@@ -193,60 +145,42 @@ def test_render_adds_the_diffuse_echo_and_off_gives_the_specular_bytes():
 @pytest.fixture(scope="module")
 def plates():
     """|I|^2 at the plate's range for a 100 x 60 mm plate and the same plate twice as tall, per seed."""
-    small, large = plate(100.0, 60.0), plate(100.0, 120.0)
-    return {name: [plate_slice(diffuse_volume(*mesh, seed)) for seed in SEEDS]
+    small, large = SP.plate(100.0, 60.0), SP.plate(100.0, 120.0)
+    return {name: [SP.diffuse_intensity(*mesh, seed) for seed in SEEDS]
             for name, mesh in (("small", small), ("large", large))}
 
 
 def test_diffuse_plate_speckle_is_fully_developed(plates):
     """Contrast std / mean of intensity 1 +- 0.1; amplitude Rayleigh (Lilliefors-type: scale estimated)."""
-    pooled = np.concatenate([interior(i, 100.0, 60.0).ravel() for i in plates["small"]])
+    pooled = np.concatenate([SP.interior(i, 100.0, 60.0).ravel() for i in plates["small"]])
     pooled = pooled / pooled.mean()
     assert len(pooled) >= 1000
-    assert pooled.std() / pooled.mean() == pytest.approx(1.0, abs=0.1)
+    assert pooled.std() == pytest.approx(1.0, abs=0.1)
     # |I|^2 exponential <=> |I| Rayleigh; the scale is fitted, so the null distribution is simulated
     fit = stats.goodness_of_fit(stats.expon, pooled, known_params={"loc": 0.0}, statistic="ks",
                                 n_mc_samples=199, rng=np.random.default_rng(0))
     assert fit.pvalue > 0.01, fit
+    # and not a test that cannot fail: a plate with one scatterer per 20 mm^2 is patchy, not exponential
+    sparse = RP.RadarParams(diffuse_density_per_mm2=0.05)
+    patchy = np.concatenate([SP.interior(SP.diffuse_intensity(*SP.plate(100.0, 60.0), s, sparse), 100.0, 60.0).ravel()
+                             for s in SEEDS])
+    assert patchy.std() / patchy.mean() > 1.2
 
 
 def test_twice_the_plate_twice_the_power_same_mean_intensity(plates):
     small = np.mean([i.sum() for i in plates["small"]])
     large = np.mean([i.sum() for i in plates["large"]])
     assert 10 * math.log10(large / small) == pytest.approx(3.0, abs=0.5)
-    mean_small = np.mean([interior(i, 100.0, 60.0).mean() for i in plates["small"]])
-    mean_large = np.mean([interior(i, 100.0, 120.0).mean() for i in plates["large"]])
+    mean_small = np.mean([SP.interior(i, 100.0, 60.0).mean() for i in plates["small"]])
+    mean_large = np.mean([SP.interior(i, 100.0, 120.0).mean() for i in plates["large"]])
     assert abs(10 * math.log10(mean_large / mean_small)) <= 0.5
-
-
-def fwhm_mm(profile: np.ndarray, spacing_mm: float) -> float:
-    """Full width at half maximum of a peaked profile (linear interpolation between samples)."""
-    peak = int(np.argmax(profile))
-    half = profile[peak] / 2
-    right = peak + np.argmax(profile[peak:] < half)
-    left = peak - np.argmax(profile[peak::-1] < half)
-    r = right - 1 + (profile[right - 1] - half) / (profile[right - 1] - profile[right])
-    lo = left + 1 - (profile[left + 1] - half) / (profile[left + 1] - profile[left])
-    return (r - lo) * spacing_mm
 
 
 def test_speckle_grain_is_the_psf(plates):
     """Autocovariance of the mean-subtracted intensity: FWHM within 25 % of the PSF intensity's -3 dB width."""
-    radar, pixel = RP.RadarParams(), IMAGES.fov_mm / IMAGES.size
-    freqs = RP.frequencies(radar)
-    point = RE.point_echo(np.zeros((1, 3)), RP.view_frame("anterior")[2][None], [1.0],
-                          RP.aperture_positions(radar, "anterior"), freqs, RD.lambert(radar))
-    psf = plate_slice(view_volume(point.reshape(*radar.aperture, -1), freqs, *RP.aperture_axes(radar), radar.z0_mm,
-                                  IMAGES))
-    centre = np.unravel_index(np.argmax(psf), psf.shape)
-    psf_width = fwhm_mm(psf[centre[0]], pixel)
-    u, v = pixel_centres(IMAGES.size, IMAGES.fov_mm)
-    inside = np.ix_(np.abs(v) < 30.0 - 2 * resolution_mm(), np.abs(u) < 50.0 - 2 * resolution_mm())
-    widths = []
-    for intensity in plates["small"]:
-        centred = intensity[inside] - intensity[inside].mean()  # every pixel: the grain is a few pixels wide
-        spectrum = np.abs(np.fft.fft2(centred, s=[2 * n for n in centred.shape])) ** 2
-        autocov = np.fft.fftshift(np.real(np.fft.ifft2(spectrum)))
-        row = autocov[autocov.shape[0] // 2]
-        widths.append(fwhm_mm(row, pixel))
-    assert np.mean(widths) == pytest.approx(psf_width, rel=0.25)
+    assert SP.grain_over_psf(plates["small"], 100.0, 60.0) == pytest.approx(1.0, rel=0.25)
+
+
+def test_fwhm_of_a_gaussian():
+    x = np.arange(-40, 41) * 0.5
+    assert SP.fwhm_mm(np.exp(-x**2 / (2 * 3.0**2)), 0.5) == pytest.approx(2 * math.sqrt(2 * math.log(2)) * 3.0, rel=1e-3)

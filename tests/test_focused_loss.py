@@ -25,7 +25,8 @@ def scene():
     import meshsar_builder.radar.echo as RE
     import meshsar_builder.radar.visibility as RV
 
-    radar = RP.RadarParams(aperture=(32, 32), step_mm=5.0, loss_decimation=(1, 1, 4))
+    # specular only: the targets here are the facet echo (the diffuse part: its own test below)
+    radar = RP.RadarParams(aperture=(32, 32), step_mm=5.0, loss_decimation=(1, 1, 4), diffuse=False)
     setup = FocusedSetup(radar, radar.views, FocusedParams())
     verts, faces, _ = icosphere_levels(3)
     fine_v, fine_f = verts[3] * AXES_MM, faces[3]
@@ -94,6 +95,53 @@ def test_physics_target_minimum_and_gradient_point_at_the_truth(scene):
             # the net push points back along the shift
             net = -grad.sum(0)
             assert net @ (-np.eye(3)[axis] * np.sign(s)) > 0.9 * np.linalg.norm(net), (axis, s, net)
+
+
+def cosine(a, b) -> float:
+    return float((a * b).sum() / (np.linalg.norm(a) * np.linalg.norm(b)))
+
+
+def test_diffuse_expected_power_is_the_production_speckle_on_average(scene):
+    """The prediction's diffuse part against the production diffuse echo averaged over 8 scatterer draws.
+
+    Its shape (cosine >= 0.95; one draw alone: ~0.86) and its calibration against the
+    specular part (the diffuse-to-specular power ratio of the targets, within 10 %).
+    """
+    import dataclasses
+
+    import meshsar_builder.radar.diffuse as RD
+    import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.visibility as RV
+
+    radar = dataclasses.replace(scene["radar"], diffuse=True)
+    setup = FocusedSetup(radar, ["anterior"], FocusedParams())
+    verts, faces = scene["verts"], scene["faces"].numpy()
+    grid = RP.loss_grid(radar)
+    positions, freqs = grid["positions_mm"]["anterior"], grid["frequencies_hz"]
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "anterior"))
+    seen = vis > 0
+    shape = (1, *radar.aperture, len(freqs))
+    with _quiet():
+        specular = setup.target(RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar).reshape(shape))[0]
+    draws = []
+    for seed in range(8):
+        s = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(seed))
+        points, normals, weights = RD.place(verts, faces, s, radar)
+        lit = vis[s.face] > 0
+        echo = RE.point_echo(points[lit], normals[lit], weights[lit] * vis[s.face][lit], positions, freqs,
+                             RD.lambert(radar))
+        draws.append(setup.target(echo.reshape(shape))[0])
+    diffuse = np.mean(draws, axis=0)
+    v, mask = torch.as_tensor(verts, dtype=torch.float64)[None], torch.as_tensor(vis)[None]
+    with torch.no_grad():
+        predicted = {part: setup.predicted(v, scene["faces"], 0, mask, parts=(part,))[0].numpy()
+                     for part in ("specular", "diffuse")}
+    assert cosine(predicted["diffuse"], diffuse) >= 0.95
+    assert predicted["diffuse"].sum() / predicted["specular"].sum() == pytest.approx(
+        diffuse.sum() / specular.sum(), rel=0.1)
+    # and the two parts together fit the whole target better than the specular part alone
+    both = predicted["specular"] + predicted["diffuse"]
+    assert cosine(both, specular + diffuse) > cosine(predicted["specular"], specular + diffuse) + 0.03
 
 
 def test_noise_power_is_subtracted(scene):

@@ -112,6 +112,8 @@ def test_render_sample_on_the_torch_path_adds_the_same_noise(monkeypatch, device
     assert relative(got["sar"].astype(np.float32), cpu["sar"].astype(np.float32)) < 1e-3  # float16 steps
     for mine, theirs in zip(got["views"], cpu["views"]):
         assert mine["visible_facets"] == theirs["visible_facets"]
+        assert mine["visible_scatterers"] == theirs["visible_scatterers"] > 0  # the diffuse part, on by default
+        np.testing.assert_allclose(mine["diffuse_power"], theirs["diffuse_power"], rtol=1e-6)
         np.testing.assert_allclose(mine["noise_power"], theirs["noise_power"], rtol=1e-5)
         np.testing.assert_allclose(mine["noise_floor_db"], theirs["noise_floor_db"], atol=1e-4)
 

@@ -235,7 +235,7 @@ def fake_radar_outputs(out: Path, recipe: R.Recipe, n_ssm: int = 3, frames: int 
         with open(out / "radar" / f"{sid}.npz", "wb") as f:
             np.savez(f, sar=s.sar, echo=s.echo, echo_clean=s.echo_clean, noise_seed=s.noise_seed,
                      noise_sigma=s.noise_sigma, center_mm=np.full(3, 500, np.float32))
-        records[sid] = {"item": sid, "inputs": {str(mesh): sha256_file(mesh)}, "meta": meta}
+        records[sid] = {"item": sid, "inputs": {str(mesh): sha256_file(mesh)}, "mesh": str(mesh), "meta": meta}
     return Results(done={"radar": records})
 
 

@@ -1,5 +1,6 @@
-"""Radar benchmark: seconds per view on one core for both facet models, production echo vs direct, Embree rays,
-and the GPU radar's seconds per view against that core (skipped, with the reason, without CUDA).
+"""Radar benchmark: seconds per view on one core for both facet models and the diffuse part, production echo vs
+direct, Embree rays, the speckle statistics (bench.speckle, radar.appearance), and the GPU radar's seconds per
+view against that core (skipped, with the reason, without CUDA).
 
 run() measures in a child process started with OMP/OPENBLAS/MKL/NUMBA thread counts
 of 1 (they are read once, when numpy and numba load) and pinned to one CPU with
@@ -27,6 +28,7 @@ TARGET_SPEEDUP = 100.0
 TARGET_ERROR = 1e-4
 TARGET_VIEW_SECONDS = 1.5
 TARGET_PO_OVER_CENTROID = 2.5  # whole view, the facet integral against the centroid model
+TARGET_DIFFUSE_SECONDS = 0.15  # the diffuse part's echo per view (issue 29 item 5)
 DIRECT_ANTENNAS = 48  # the direct sum is timed on this many antennas and scaled to the aperture
 REPEATS = 3
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
@@ -55,8 +57,13 @@ def first_echo_seconds() -> float:
     return time.perf_counter() - start
 
 
-def view_seconds(verts, faces, intersector, radar, images, view) -> dict:
-    """Best-of-REPEATS seconds of one view as render_sample does it: visibility, echo, imaging (signal and noise)."""
+def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None) -> dict:
+    """Best-of-REPEATS seconds of one view as render_sample does it: visibility, echo, diffuse echo, imaging (signal and noise).
+
+    scatterers : radar.diffuse.Scatterers on this mesh, or None for no diffuse part.
+    `signal` is the specular echo alone (what the accuracy and GPU rows compare).
+    """
+    import meshsar_builder.radar.diffuse as RD
     import meshsar_builder.radar.echo as RE
     import meshsar_builder.radar.params as RP
     import meshsar_builder.radar.visibility as RV
@@ -67,11 +74,20 @@ def view_seconds(verts, faces, intersector, radar, images, view) -> dict:
     seen = vis > 0
     positions = RP.aperture_positions(radar, view)
     t_echo, signal = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar))
+    t_diffuse, lit_count = 0.0, 0
+    if scatterers is not None:
+        points, normals, weights = RD.place(verts, faces, scatterers, radar)
+        lit = vis[scatterers.face] > 0
+        lit_count = int(lit.sum())
+        t_diffuse, _ = _best(lambda: RE.point_echo(points[lit], normals[lit], weights[lit] * vis[scatterers.face[lit]],
+                                                   positions, freqs, RD.lambert(radar)))
     signal = signal.reshape(*radar.aperture, radar.n_samples)
     t_img, volume = _best(lambda: view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
-    return {"visible_facets": int(seen.sum()), "seconds_visibility": t_vis, "seconds_echo": t_echo,
+    return {"visible_facets": int(seen.sum()), "visible_scatterers": lit_count, "seconds_visibility": t_vis,
+            "seconds_echo": t_echo, "seconds_diffuse": t_diffuse,
             "seconds_imaging": 2 * t_img,  # the signal's image and the noise's own
-            "seconds_view": t_vis + t_echo + 2 * t_img, "signal": signal, "volume": volume, "seen": seen, "vis": vis}
+            "seconds_view": t_vis + t_echo + t_diffuse + 2 * t_img, "signal": signal, "volume": volume, "seen": seen,
+            "vis": vis}
 
 
 def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
@@ -121,10 +137,56 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
             "chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views}
 
 
+def speckle_row(verts, faces, radar, images, seeds: int = 5) -> dict:
+    """The diffuse part's statistics: on a plate (bench.speckle.plate_statistics) and on this heart.
+
+    On the heart, per view and seed (render_sample with the sample's own scatterers and
+    noise), radar.appearance's figures; their medians over views and seeds.
+    """
+    from meshsar_builder.bench.speckle import plate_statistics
+    from meshsar_builder.radar.render import render_sample
+
+    looks = [view["appearance"] for seed in range(seeds)
+             for view in render_sample(verts, faces, radar, images, np.random.default_rng(seed))["views"]]
+    keys = ("speckle_share", "peak_over_median_db", "depth_error_median_mm", "depth_within_5mm")
+    return {"plate": plate_statistics(seeds),
+            "heart": {"seeds": seeds, "views": len(looks),
+                      **{key: {"median": float(np.median([look[key] for look in looks])),
+                               "min": float(np.min([look[key] for look in looks])),
+                               "max": float(np.max([look[key] for look in looks]))} for key in keys}}}
+
+
+def speckle_targets(speckle: dict) -> dict:
+    """Issue 29's checks as targets with a `met` flag, under keys that name the speckle or the diffuse part."""
+    plate, heart = speckle["plate"], speckle["heart"]
+
+    def within(key, value, target, tolerance):
+        return {key: {"target": f"{target} +- {tolerance}", "measured": value, "met": abs(value - target) <= tolerance}}
+
+    def at_least(key, value, target):
+        return {key: {"target": f">= {target}", "measured": value, "met": value >= target}}
+
+    def at_most(key, value, target):
+        return {key: {"target": f"<= {target}", "measured": value, "met": value <= target}}
+
+    return {
+        **within("speckle_plate_contrast", plate["contrast"], 1.0, 0.1),
+        **at_least("speckle_plate_rayleigh_ks_pvalue", plate["ks_pvalue"], 0.01),
+        **within("diffuse_doubled_area_power_db", plate["doubled_area_power_db"], 3.0, 0.5),
+        **within("diffuse_doubled_area_mean_db", plate["doubled_area_mean_db"], 0.0, 0.5),
+        **within("speckle_grain_over_psf", plate["grain_over_psf"], 1.0, 0.25),
+        **at_least("speckle_share_median", heart["speckle_share"]["median"], 0.5),
+        **at_least("speckle_peak_over_median_db_min", heart["peak_over_median_db"]["min"], 10.0),
+        **at_most("speckle_depth_error_median_mm", heart["depth_error_median_mm"]["median"], 3.0),
+        **at_least("speckle_depth_within_5mm", heart["depth_within_5mm"]["median"], 0.8),
+    }
+
+
 def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
     """The benchmark numbers at default parameters (call on one core; run() arranges that)."""
     import dataclasses
 
+    import meshsar_builder.radar.diffuse as RD
     import meshsar_builder.radar.echo as RE
     import meshsar_builder.radar.params as RP
     import meshsar_builder.radar.visibility as RV
@@ -136,9 +198,10 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
     freqs = RP.frequencies(radar)
     _, normals, _ = RV.facet_geometry(verts, faces)
     intersector = RV.embree_intersector(verts, faces)
+    scatterers = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(0))
     views, ray_count, ray_seconds, cpu_views = [], 0, 0.0, []
     for view in radar.views:
-        po = view_seconds(verts, faces, intersector, radar, images, view)
+        po = view_seconds(verts, faces, intersector, radar, images, view, scatterers)
         point = view_seconds(verts, faces, intersector, centroid, images, view)
         cpu_views.append(dict(po))  # the GPU row compares with these, arrays included
         seen, vis = po.pop("seen"), po.pop("vis")
@@ -166,13 +229,17 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
             **{key: value for key, value in po.items() if key.startswith("seconds")},
             "centroid": {key: value for key, value in point.items() if key.startswith("seconds")},
             "po_over_centroid_echo": po["seconds_echo"] / point["seconds_echo"],
-            "po_over_centroid_view": po["seconds_view"] / point["seconds_view"],
+            # both without the diffuse part, which does not depend on the facet model
+            "po_over_centroid_view": (po["seconds_view"] - po["seconds_diffuse"]) / point["seconds_view"],
+            "diffuse_over_specular_echo": po["seconds_diffuse"] / po["seconds_echo"],
             "seconds_echo_direct_scaled": direct_scaled,
             "echo_speedup": direct_scaled / po["seconds_echo"],
             "echo_relative_error": error,
             "direct_antennas": len(subset),
         })
     worst_view = max(v["seconds_view"] for v in views)
+    worst_diffuse = max(v["seconds_diffuse"] for v in views)
+    speckle = speckle_row(verts, faces, radar, images)
     speedup = min(v["echo_speedup"] for v in views)
     error = max(v["echo_relative_error"] for v in views)
     ratio = max(v["po_over_centroid_view"] for v in views)
@@ -187,7 +254,11 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
         "views": views,
         "embree_rays_per_second": ray_count / ray_seconds,
         "gpu": gpu_row(verts, faces, radar, images, cpu_views),
+        "speckle": speckle,
         "targets": {
+            "diffuse_seconds_per_view": {"target": TARGET_DIFFUSE_SECONDS, "measured_max": worst_diffuse,
+                                         "met": worst_diffuse <= TARGET_DIFFUSE_SECONDS},
+            **speckle_targets(speckle),
             "echo_speedup": {"target": TARGET_SPEEDUP, "measured_min": speedup, "met": speedup >= TARGET_SPEEDUP},
             "echo_relative_error": {"target": TARGET_ERROR, "measured_max": error, "met": error <= TARGET_ERROR},
             "seconds_per_view": {"target": TARGET_VIEW_SECONDS, "measured_max": worst_view,

@@ -244,13 +244,14 @@ def bench_recipe(out: Path, recipe: Path, workers: int = 2) -> dict:
         stages[row["stage"]] = {"items": row["items"], "failed": row["failed"], "wall_seconds": row["seconds"],
                                 "share_of_wall": row["seconds"] / wall, "item_seconds_sum": float(np.sum(item_seconds)),
                                 "seconds_per_item": float(np.mean(item_seconds)) if item_seconds else 0.0}
-    radar = {"visibility": 0.0, "echo": 0.0, "imaging": 0.0, "item_seconds": 0.0}
+    parts = ("visibility", "echo", "diffuse", "imaging")
+    radar = {**dict.fromkeys(parts, 0.0), "item_seconds": 0.0}
     for rec in map(read_json, sorted((build_dir / "radar").glob("*.json"))):
         radar["item_seconds"] += rec.get("seconds", 0.0)
         for view in rec.get("views", []):
-            for part in ("visibility", "echo", "imaging"):
-                radar[part] += view["seconds"][part]
-    radar["rest"] = radar["item_seconds"] - radar["visibility"] - radar["echo"] - radar["imaging"]
+            for part in parts:
+                radar[part] += view["seconds"].get(part, 0.0)
+    radar["rest"] = radar["item_seconds"] - sum(radar[part] for part in parts)
     samples = read_json(build_dir / "index.json")["n_samples"]
     result = {
         "recipe": str(recipe), "workers": workers, "cpu_count": os.cpu_count(),

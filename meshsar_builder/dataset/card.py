@@ -99,6 +99,33 @@ def gallery(samples: list, index: dict, path: Path) -> None:
     save_figure(fig, path)
 
 
+def speckle_figure(sample_id: str, stored: np.ndarray, specular: np.ndarray, views: list[dict],
+                   cycle: list[tuple[str, np.ndarray]], path: Path) -> None:
+    """The diffuse part at a glance: one sample's intensity with it and without, then one subject's speckle over its cycle.
+
+    stored, specular : (V, H, W) intensity channels of the sample as built and re-rendered
+    with the diffuse part off (same noise seeds); cycle : (frame label, (H, W) intensity of
+    the first view) of a beating subject's frames, empty if there is none.
+    """
+    columns = max(2 * len(views), len(cycle))
+    fig, axes = plt.subplots(2 if cycle else 1, columns, figsize=(1.7 * columns, 4.0 if cycle else 2.1),
+                             squeeze=False)
+    for k, view in enumerate(views):
+        for j, (image, what) in enumerate(((stored[k], "specular + diffuse"), (specular[k], "specular only"))):
+            axes[0, 2 * k + j].imshow(image, cmap="gray", vmin=0, vmax=1)
+            axes[0, 2 * k + j].set_title(f"{view['name']}\n{what}", fontsize=7)
+    axes[0, 0].set_ylabel(sample_id, fontsize=7)
+    for ax, (label, image) in zip(axes[1] if cycle else [], cycle):
+        ax.imshow(image, cmap="gray", vmin=0, vmax=1)
+        ax.set_title(f"{views[0]['name']}, {label}", fontsize=7)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+        if not ax.images:
+            ax.set_axis_off()
+    save_figure(fig, path)
+
+
 def ssm_variance_plot(report: dict, path: Path) -> None:
     """The standard SSM quality curves against the number of modes: variance explained per mode and
     cumulatively (compactness); generalisation and specificity (vertex to vertex, mm)."""

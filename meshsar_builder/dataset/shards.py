@@ -330,8 +330,8 @@ def build_index(*, recipe: str, recipe_sha256: str, code_version: str, metadata:
     shards   : [{file (relative to the build root), n, sha256, sample_ids}] in dataset order.
     metas    : sample id -> its meta (source, subject, subset, ...).
     Adds `samples` (id -> shard position, row, source, subject, subset: what splits and
-    readers need without opening shards; and each view's image noise floor, dB below its
-    peak) and `n_samples`.
+    readers need without opening shards; each view's image noise floor, dB below its
+    peak, and its appearance figures where the radar stage made them) and `n_samples`.
     """
     samples = {}
     for k, entry in enumerate(shards):
@@ -341,6 +341,8 @@ def build_index(*, recipe: str, recipe_sha256: str, code_version: str, metadata:
                             "noise_floor_db": m.get("noise_floor_db")}
             if m.get("cohort"):  # a subject namespace shared by sources (splits.group_key)
                 samples[sid]["cohort"] = m["cohort"]
+            if m.get("appearance"):  # per view: speckle share, glint contrast, depth error (radar.appearance)
+                samples[sid]["appearance"] = m["appearance"]
     subjects = {}
     for s in samples.values():
         subjects.setdefault(s["subset"], set()).add((s["source"], s["subject"]))

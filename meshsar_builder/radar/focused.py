@@ -109,6 +109,9 @@ class FocusedSetup:
         # the kernel's centre voxel (the point's own) moved to index 0: a convolution that shifts nothing
         centre = (self.shape[0] // 2 + self.shape[0] // 2, self.shape[1] // 2, self.shape[2] // 2)
         self.psf_transfer = np.fft.rfftn(np.roll(self._centred(self.psf), [-c for c in centre], axis=(0, 1, 2)))
+        # |h|^2: how the diffuse part's scatterers add, incoherently, in expectation
+        self.psf_power_transfer = np.fft.rfftn(np.roll(self._centred(self.psf**2), [-c for c in centre],
+                                                       axis=(0, 1, 2)))
         self.unit_noise_power = self._unit_noise_power()
         self._torch = {}
 
@@ -175,6 +178,8 @@ class FocusedSetup:
                 "frames": torch.as_tensor(self.frames, dtype=dtype, device=device),
                 "psf": torch.as_tensor(self.psf_transfer, dtype=torch.complex64 if dtype == torch.float32
                                        else torch.complex128, device=device),
+                "psf_power": torch.as_tensor(self.psf_power_transfer, dtype=torch.complex64 if dtype == torch.float32
+                                             else torch.complex128, device=device),
                 "blur": torch.as_tensor(self.blur, dtype=dtype, device=device),
             }
         return self._torch[key]
@@ -206,6 +211,24 @@ class FocusedSetup:
         # specular: the antenna that sees the facet's mirror reflection sees it at normal incidence (lobe 1)
         return areas * window * (z0 * z0) / r2, c
 
+    def diffuse_weights(self, centroids, normals, areas, visibility, view: int):
+        """Expected diffuse power per facet (..., F), in the units of the specular weights squared.
+
+        The production diffuse part (radar.diffuse): scatterers of mean power beta per mm^2,
+        amplitude times the facet's visibility V, Lambert's cos toward the aperture centre,
+        1 / R^2: beta area V^2 cos^2 (z0 / R)^4, the specular weights' z0^2 / R^2 squared.
+        """
+        from meshsar_builder.radar.diffuse import mean_power_per_area
+
+        frame = self._tensors(centroids.device, centroids.dtype)["frames"][view]
+        c = centroids @ frame.T
+        n = normals @ frame.T
+        z0 = self.radar.z0_mm
+        to_centre = torch.stack([-c[..., 0], -c[..., 1], z0 - c[..., 2]], dim=-1)
+        r2 = (to_centre * to_centre).sum(-1)
+        cos = ((to_centre * n).sum(-1) / r2.sqrt()).clamp_min(0)
+        return mean_power_per_area(self.radar) * areas * visibility**2 * cos**2 * (z0 * z0 / r2) ** 2
+
     def splat(self, coords: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         """Trilinear splat of weights (B, F) at view coordinates (B, F, 3) into (B, 2S, H, W), centred along w."""
         s, h, wd = self.shape
@@ -233,8 +256,13 @@ class FocusedSetup:
                     out = out.scatter_add(1, flat, torch.where(inside, wgt, torch.zeros_like(wgt)))
         return out.reshape(batch, *sizes)
 
-    def predicted(self, verts: torch.Tensor, faces: torch.Tensor, view: int, mask: torch.Tensor | None = None):
-        """Predicted blurred power (B, S, H, W) of one view for verts (B, n, 3) mm, faces (m, 3) long."""
+    def predicted(self, verts: torch.Tensor, faces: torch.Tensor, view: int, mask: torch.Tensor | None = None,
+                  parts: tuple[str, ...] = ("specular", "diffuse")):
+        """Predicted blurred power (B, S, H, W) of one view for verts (B, n, 3) mm, faces (m, 3) long.
+
+        parts: the specular part, and the diffuse part's expected power where the build has
+        one (radar.diffuse); the tests check each against the production echo on its own.
+        """
         from meshsar_builder.radar.differentiable import facet_geometry_torch, occlusion_mask
 
         t = self._tensors(verts.device, verts.dtype)
@@ -244,10 +272,14 @@ class FocusedSetup:
         faces, mask = faces[seen], mask[:, seen]
         centroids, normals, areas = facet_geometry_torch(verts, faces)
         weights, coords = self.weights(centroids, normals, areas * mask, view)
-        grid = self.splat(coords, weights)
+        grid = self.splat(coords, weights * ("specular" in parts))
         magnitude = torch.fft.irfftn(torch.fft.rfftn(grid, dim=(1, 2, 3)) * t["psf"], s=self.padded, dim=(1, 2, 3))
-        power = torch.fft.irfftn(torch.fft.rfftn(magnitude * magnitude, dim=(1, 2, 3)) * t["blur"], s=self.padded,
-                                 dim=(1, 2, 3))
+        power = magnitude * magnitude
+        if self.radar.diffuse and "diffuse" in parts:  # the diffuse part's expected power beside the specular part's
+            diffuse = self.splat(coords, self.diffuse_weights(centroids, normals, areas, mask, view))
+            power = power + torch.fft.irfftn(torch.fft.rfftn(diffuse, dim=(1, 2, 3)) * t["psf_power"], s=self.padded,
+                                             dim=(1, 2, 3))
+        power = torch.fft.irfftn(torch.fft.rfftn(power, dim=(1, 2, 3)) * t["blur"], s=self.padded, dim=(1, 2, 3))
         s = self.shape[0]
         return power[:, s // 2: s // 2 + s]
 

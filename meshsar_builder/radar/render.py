@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from meshsar_builder.radar.appearance import surface_depth, view_appearance
 from meshsar_builder.radar.diffuse import Scatterers, draw_scatterers, lambert, place
 from meshsar_builder.radar.echo import echo, point_echo
 from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images
@@ -80,7 +81,9 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     and `noise_power` (mean per raw sample), `diffuse_power` (the diffuse echo's own mean
     power; null without it) and `visible_scatterers`, `raw_snr_db`, `noise_floor_db` (the
     image noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
-    and `seconds` for visibility, echo (specular), diffuse and imaging.
+    `appearance` (radar.appearance.view_appearance: speckle share, glint contrast, depth
+    error against the mesh), and `seconds` for visibility, echo (specular), diffuse and
+    imaging (with the appearance).
 
     radar.device picks where each view's echo and imaging run (view_functions); the noise
     is drawn here on the CPU from rng either way, so a CUDA build differs from a CPU
@@ -138,6 +141,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
                 image_noise = sigma * noise_rms
                 floor_db = 20 * math.log10(peak / image_noise) if peak > 0 else None
         sar.append(volume_images(volume, freqs, radar.z0_mm, images, image_noise))
+        look = view_appearance(sar[-1], surface_depth(verts, faces, view, images, intersector), images)
         t3 = time.perf_counter()
         decimated.append(add_noise(signal[keep].astype(np.complex64), sigma, None if noise is None else noise[keep]))
         clean.append(signal[keep_loss].astype(np.complex64))
@@ -148,7 +152,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
             "signal_power": signal_power, "noise_power": noise_power, "diffuse_power": diffuse_power,
             "visible_scatterers": n_scatterers,
             "raw_snr_db": 10 * math.log10(signal_power / noise_power) if noise_power > 0 and signal_power > 0 else None,
-            "noise_floor_db": floor_db, "rays": rays,
+            "noise_floor_db": floor_db, "rays": rays, "appearance": look,
             "seconds": {"visibility": t1 - t0, "echo": t_diffuse - t1, "diffuse": t2 - t_diffuse, "imaging": t3 - t2},
         })
     return {
