@@ -133,3 +133,148 @@ def plate_statistics(seeds: int = 5) -> dict:
         "grain_over_psf_hann": grain_over_psf([diffuse_intensity(*small, s, images=hann) for s in range(seeds)],
                                               100.0, 60.0, hann),
     }
+
+
+# ------------------------------------------------------------------ speckle over a cycle, tessellation (checks c, d)
+
+CYCLE_VIEW = "anterior"
+# The speckle component is intensity over its local mean: a Gaussian of this many mm (about three
+# PSF widths of the Hann-windowed images) takes the mean.
+LOCAL_MEAN_SIGMA_MM = 8.0
+# Display range for the linear intensity read back from the channel: wide, so little is clipped.
+WIDE = ImageParams(dynamic_range_db=80.0)
+
+
+def view_intensity(verts, faces, scatterers, seed: int, radar: RP.RadarParams | None = None,
+                   images: ImageParams = WIDE) -> tuple[np.ndarray, np.ndarray]:
+    """Linear intensity (H, W) of CYCLE_VIEW without noise, and the silhouette mask (H, W), for a mesh and its scatterers."""
+    from meshsar_builder.radar.appearance import surface_depth
+    from meshsar_builder.radar.render import render_sample
+
+    radar = dataclasses.replace(radar or RP.RadarParams(), views=(CYCLE_VIEW,), image_snr_db=math.inf)
+    sar = render_sample(verts, faces, radar, images, np.random.default_rng(seed), scatterers)["sar"][0, 0]
+    intensity = 10 ** ((sar.astype(np.float64) - 1) * images.dynamic_range_db / 10)
+    return intensity, np.isfinite(surface_depth(verts, faces, CYCLE_VIEW, images))
+
+
+def speckle_component(intensity: np.ndarray, images: ImageParams = WIDE) -> np.ndarray:
+    """Intensity (H, W) over its local mean (Gaussian of LOCAL_MEAN_SIGMA_MM)."""
+    from scipy.ndimage import gaussian_filter
+
+    local = gaussian_filter(intensity, LOCAL_MEAN_SIGMA_MM / (images.fov_mm / images.size))
+    return intensity / np.maximum(local, np.finfo(float).tiny)
+
+
+def ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """Normalised cross-correlation of two images over mask."""
+    x, y = a[mask] - a[mask].mean(), b[mask] - b[mask].mean()
+    return float((x * y).sum() / np.sqrt((x * x).sum() * (y * y).sum()))
+
+
+def cycle_correlation(frames: list[np.ndarray], faces: np.ndarray, density: float, seed: int,
+                      radar: RP.RadarParams | None = None) -> dict:
+    """Speckle NCC against frame spacing for frames verts (n, 3) sharing faces (F, 3), heart frame.
+
+    `shared`: the scatterers drawn once on the first frame and attached by face and
+    barycentric coordinates (the build's frames in correspondence); `fresh`: drawn anew on
+    every frame. Per spacing k, the mean NCC of the speckle components of frames i and i + k
+    over the pixels inside both silhouettes.
+    """
+    shared = RD.draw_scatterers(frames[0], faces, density, np.random.default_rng(seed))
+    components = {"shared": [], "fresh": []}
+    masks = []
+    for i, verts in enumerate(frames):
+        fresh = RD.draw_scatterers(verts, faces, density, np.random.default_rng([seed, i + 1]))
+        for kind, scatterers in (("shared", shared), ("fresh", fresh)):
+            intensity, mask = view_intensity(verts, faces, scatterers, seed, radar)
+            components[kind].append(speckle_component(intensity))
+        masks.append(mask)
+    out = {}
+    for kind, images in components.items():
+        out[kind] = {}
+        for spacing in range(1, len(frames)):
+            pairs = [ncc(images[i], images[i + spacing], masks[i] & masks[i + spacing])
+                     for i in range(len(frames) - spacing)]
+            out[kind][spacing] = float(np.mean(pairs))
+    return out
+
+
+def silhouette_statistics(verts, faces, seeds: int, density: float) -> dict:
+    """Mean linear intensity and contrast (std / mean) inside CYCLE_VIEW's silhouette, each averaged over seeds.
+
+    The whole image (specular and diffuse, no noise); the scatterers are drawn on this mesh.
+    """
+    means, contrasts = [], []
+    for seed in range(seeds):
+        scatterers = RD.draw_scatterers(verts, faces, density, np.random.default_rng(seed))
+        intensity, mask = view_intensity(verts, faces, scatterers, seed)
+        means.append(intensity[mask].mean())
+        contrasts.append(intensity[mask].std() / intensity[mask].mean())
+    return {"mean_intensity": float(np.mean(means)), "contrast": float(np.mean(contrasts))}
+
+
+def run(out_dir, data, frames: int = 10, seeds: int = 5) -> dict:
+    """`meshsar bench speckle`: checks (c) and (d) of issue 29 on a build; writes out_dir/speckle.json.
+
+    (c) the demo heart remeshed at 2.5 and 1.25 mm edges: mean intensity and contrast inside
+    the silhouette within 5 %, over `seeds` draws. (d) the build's first beating subject:
+    speckle NCC against frame spacing over its first `frames` frames in correspondence, with
+    the scatterers attached (shared) and drawn anew per frame (fresh); and two shape-model
+    samples' speckle components, which should not correlate.
+    """
+    from pathlib import Path
+
+    from meshsar_builder.bench.suite import demo_subject
+    from meshsar_builder.geometry.meshfile import read_ply
+    from meshsar_builder.geometry.remesh import RemeshParams, remesh
+    from meshsar_builder.pipeline.errors import InputError
+    from meshsar_builder.pipeline.io import read_json, write_json
+
+    data = Path(data)
+    density = RP.RadarParams().diffuse_density_per_mm2
+    surface = demo_subject(0)
+    tessellations = {}
+    for edge in (2.5, 1.25):
+        verts, faces = remesh(surface.verts, surface.faces, RemeshParams(edge_mm=edge))
+        verts = verts - (verts.min(axis=0) + verts.max(axis=0)) / 2
+        tessellations[edge] = {"faces": int(len(faces)), **silhouette_statistics(verts, faces, seeds, density)}
+    coarse, fine = tessellations[2.5], tessellations[1.25]
+    tessellation = {"edges_mm": tessellations,
+                    "mean_difference": abs(coarse["mean_intensity"] / fine["mean_intensity"] - 1),
+                    "contrast_difference": abs(coarse["contrast"] / fine["contrast"] - 1)}
+
+    cycles = sorted((data / "track").glob("*-cycle.json"))
+    if not cycles:
+        raise InputError(f"bench speckle: {data} has no beating subject (track stage); build manifests/demo.toml there")
+    track = read_json(cycles[0])
+    center = np.asarray(read_json(data / "remesh" / f"{track['reference']}.json")["center_mm"])
+    ids = [mid for mid in track["frames"] if mid in track["in_correspondence"]][:frames]
+    meshes = [read_ply(data / "track" / f"{mid}.ply") for mid in ids]
+    cycle = cycle_correlation([v - center for v, _, _ in meshes], meshes[0][1], density, seed=0)
+    samples = sorted((data / "ssm" / "samples").glob("*.ply"))[:2]
+    components, masks = [], []
+    for k, path in enumerate(samples):
+        verts, faces, _ = read_ply(path)
+        verts = verts - (verts.min(axis=0) + verts.max(axis=0)) / 2
+        scatterers = RD.draw_scatterers(verts, faces, density, np.random.default_rng(k))
+        intensity, mask = view_intensity(verts, faces, scatterers, k)
+        components.append(speckle_component(intensity))
+        masks.append(mask)
+    two_subjects = ncc(*components, masks[0] & masks[1])
+    result = {
+        "data": str(data), "seeds": seeds, "frames": ids, "view": CYCLE_VIEW,
+        "tessellation": tessellation, "cycle_ncc": cycle, "two_subjects": [p.stem for p in samples],
+        "two_subjects_ncc": two_subjects,
+        "targets": {
+            "speckle_tessellation_mean": {"target": "<= 0.05", "measured": tessellation["mean_difference"],
+                                          "met": tessellation["mean_difference"] <= 0.05},
+            "speckle_tessellation_contrast": {"target": "<= 0.05", "measured": tessellation["contrast_difference"],
+                                              "met": tessellation["contrast_difference"] <= 0.05},
+            "speckle_frames_correlate": {"target": "shared NCC at spacing 1 > fresh + 0.3",
+                                         "measured": [cycle["shared"][1], cycle["fresh"][1]],
+                                         "met": cycle["shared"][1] > cycle["fresh"][1] + 0.3},
+            "speckle_two_subjects_ncc": {"target": "< 0.1", "measured": two_subjects, "met": abs(two_subjects) < 0.1},
+        },
+    }
+    write_json(Path(out_dir) / "speckle.json", result)
+    return result

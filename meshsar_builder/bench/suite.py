@@ -39,8 +39,8 @@ from meshsar_builder.pipeline.io import read_json, write_json
 from meshsar_builder.pipeline.recipe import load
 
 DEMO = Path(__file__).resolve().parents[2] / "manifests" / "demo.toml"
-PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss")
-# The radar-loss part's build (format 2, with a loss grid): MESHSAR_BENCH_DATA, else build/demo.
+PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss", "speckle")
+# The radar-loss and speckle parts' build (format 2, with a loss grid): MESHSAR_BENCH_DATA, else build/demo.
 RADAR_LOSS_DATA = "build/demo"
 
 
@@ -281,9 +281,16 @@ def bench_radar_loss(out: Path) -> dict:
                samples=int(os.environ.get("MESHSAR_BENCH_SAMPLES", "5")), losses=losses)
 
 
+def bench_speckle(out: Path) -> dict:
+    from meshsar_builder.bench.speckle import run
+
+    return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA))
+
+
 def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
     """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision)."""
     out.mkdir(parents=True, exist_ok=True)
     benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline,
-               "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss}
+               "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss,
+               "speckle": bench_speckle}
     return {part: benches[part](out) for part in parts}
