@@ -213,10 +213,11 @@ def silhouette_statistics(verts, faces, seeds: int, density: float) -> dict:
     return {"mean_intensity": float(np.mean(means)), "contrast": float(np.mean(contrasts))}
 
 
-def run(out_dir, data, frames: int = 10, seeds: int = 5) -> dict:
+def run(out_dir, data, surface, frames: int = 10, seeds: int = 5) -> dict:
     """`meshsar bench speckle`: checks (c) and (d) of issue 29 on a build; writes out_dir/speckle.json.
 
-    (c) the demo heart remeshed at 2.5 and 1.25 mm edges: mean intensity and contrast inside
+    (c) `surface` (verts (n, 3), faces (F, 3): the demo heart before remeshing) remeshed at
+    2.5 and 1.25 mm edges: mean intensity and contrast inside
     the silhouette within 5 %, over `seeds` draws. (d) the build's first beating subject:
     speckle NCC against frame spacing over its first `frames` frames in correspondence, with
     the scatterers attached (shared) and drawn anew per frame (fresh); and two shape-model
@@ -224,7 +225,6 @@ def run(out_dir, data, frames: int = 10, seeds: int = 5) -> dict:
     """
     from pathlib import Path
 
-    from meshsar_builder.bench.suite import demo_subject
     from meshsar_builder.geometry.meshfile import read_ply
     from meshsar_builder.geometry.remesh import RemeshParams, remesh
     from meshsar_builder.pipeline.errors import InputError
@@ -232,10 +232,9 @@ def run(out_dir, data, frames: int = 10, seeds: int = 5) -> dict:
 
     data = Path(data)
     density = RP.RadarParams().diffuse_density_per_mm2
-    surface = demo_subject(0)
     tessellations = {}
     for edge in (2.5, 1.25):
-        verts, faces = remesh(surface.verts, surface.faces, RemeshParams(edge_mm=edge))
+        verts, faces = remesh(*surface, RemeshParams(edge_mm=edge))
         verts = verts - (verts.min(axis=0) + verts.max(axis=0)) / 2
         tessellations[edge] = {"faces": int(len(faces)), **silhouette_statistics(verts, faces, seeds, density)}
     coarse, fine = tessellations[2.5], tessellations[1.25]

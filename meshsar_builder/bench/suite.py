@@ -284,7 +284,8 @@ def bench_radar_loss(out: Path) -> dict:
 def bench_speckle(out: Path) -> dict:
     from meshsar_builder.bench.speckle import run
 
-    return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA))
+    surface = demo_subject(0)
+    return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA), (surface.verts, surface.faces))
 
 
 def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
