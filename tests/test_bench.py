@@ -84,3 +84,27 @@ def test_cli_passes_train_device_and_evaluate_samples(tmp_path, monkeypatch, cap
     assert main(["train", "c.toml", "--data", "d", "--device", "cpu"]) == 0
     assert main(["evaluate", str(tmp_path), "--data", "d", "--samples", "123"]) == 0
     assert seen["train"]["device"] == "cpu" and seen["evaluate"]["samples"] == 123
+
+
+def test_radar_roofline_counts_the_series_it_ran_and_restores_the_echo():
+    """The roofline times the echo at looser series tolerances: fewer terms, and the defaults put back after."""
+    import numpy as np
+    import trimesh
+
+    import meshsar_builder.radar.echo as RE
+    from meshsar_builder.bench import radar as BR
+    from meshsar_builder.radar.diffuse import draw_scatterers
+    from meshsar_builder.radar.params import RadarParams
+
+    mesh = trimesh.creation.icosphere(2, radius=40.0)
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    radar = RadarParams(aperture=(6, 6), step_mm=20.0)
+    scatterers = draw_scatterers(verts, faces, 0.25, np.random.default_rng(0))
+    before = (RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients, RE.CORNER_GAIN_LIMIT)
+    result = BR.roofline(verts, faces, radar, "anterior", scatterers)
+    assert (RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients, RE.CORNER_GAIN_LIMIT) == before
+    for name, (setup, per_term) in (("po", BR.FLOPS_PO), ("diffuse", BR.FLOPS_POINT)):
+        row = result[name]
+        terms = [t for t, _ in row["terms_and_seconds"]]
+        assert terms == sorted(terms) and terms[0] < terms[-1] == row["terms"]
+        assert row["flops_per_pair"] == setup + per_term * (row["terms"] - 2) and row["pairs"] > 0

@@ -13,6 +13,7 @@ cache that numba keeps in __pycache__.
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -137,6 +138,106 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
             "chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views}
 
 
+# Floating-point operations per antenna-scatterer pair of the production kernel
+# (radar.echo._chebyshev_echo), counted from its source with a multiply-add as 2 and a
+# square root, division, min or max as 1 (they take more cycles; the measured rate absorbs
+# that). L is the number of Chebyshev terms.
+# Facet integral: the distance, cos theta and two corner projections (32), the lobe at an
+# integer p (6), the amplitude, delay, the three corner weights and the cancellation test
+# (37), per corner its phase and cos / sin polynomials, weights and Chebyshev argument (52);
+# then per corner lane 6 flops for l = 0, 1 and 7 per further term (the recurrence and the
+# complex accumulation).
+FLOPS_PO = (32 + 6 + 37 + 3 * 52 + 3 * 6, 3 * 7)  # (per pair, per pair and term beyond l = 1)
+# Point scatterer (centroid model, diffuse part): distance and cos (17), lobe (6), amplitude,
+# delay, phase, cos / sin, weights and argument (57), then one lane.
+FLOPS_POINT = (17 + 6 + 57 + 6, 7)
+# Bytes a pair reads: the scatterer's row of the kernel's input, 13 float64 (facet) or 8
+# (point), streamed once per antenna from the cache that holds K rows (6,000 facets: 624 KB).
+BYTES_PO, BYTES_POINT = 13 * 8, 8 * 8
+ROOFLINE_TOLERANCES = (1e-2, 1e-4, 1e-6, 1e-8, 1e-10)
+
+
+def machine_rates() -> dict:
+    """One core's practical peaks: float64 matrix multiply (GFLOP/s) and a streaming add (GB/s)."""
+    a = np.random.default_rng(0).standard_normal((1536, 1536))
+    t, _ = _best(lambda: a @ a)
+    x, y = np.ones(1 << 25), np.ones(1 << 25)
+    out = np.empty_like(x)
+    t_add, _ = _best(lambda: np.add(x, y, out=out))
+    return {"dgemm_gflops": 2 * 1536**3 / t / 1e9, "stream_add_gb_per_s": 3 * x.nbytes / t_add / 1e9}
+
+
+def roofline(verts, faces, radar, view: str, scatterers) -> dict:
+    """The echo's time per pair against its flop count, for the facet integral and the diffuse part.
+
+    The series is cut at looser tolerances (fewer terms L) and the kernel timed at each: a line
+    seconds = pairs x (setup + L x per_term) splits a pair's time into its set-up (distance,
+    angles, phases) and its series; their flop counts (FLOPS_PO, FLOPS_POINT) over those
+    times give the rates this core reaches. Exact near-normal pairs: the facet echo timed
+    with none flagged (CORNER_GAIN_LIMIT infinite), against the default.
+    """
+    import meshsar_builder.radar.diffuse as RD
+    import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.params as RP
+    import meshsar_builder.radar.visibility as RV
+
+    freqs, positions = RP.frequencies(radar), RP.aperture_positions(radar, view)
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
+    seen = vis > 0
+    tri = verts[faces][seen]
+    points, normals, weights = RD.place(verts, faces, scatterers, radar)
+    lit = vis[scatterers.face] > 0
+    cases = {
+        "po": (lambda: RE.echo(tri, vis[seen], positions, freqs, radar), int(seen.sum()), FLOPS_PO, BYTES_PO),
+        "diffuse": (lambda: RE.point_echo(points[lit], normals[lit], weights[lit] * vis[scatterers.face[lit]],
+                                          positions, freqs, RD.lambert(radar)), int(lit.sum()), FLOPS_POINT,
+                    BYTES_POINT),
+    }
+    default_tolerance, coefficients = RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients
+    used = []  # the series' length of each call, as the kernel gets it
+
+    def recording(omega, tolerance):
+        coef = coefficients(omega, tolerance)
+        used.append(len(coef))
+        return coef
+
+    out = {"view": view, "antennas": len(positions), "frequencies": len(freqs)}
+    try:
+        RE._chebyshev_coefficients = recording
+        for name, (run, count, (setup_flops, term_flops), pair_bytes) in cases.items():
+            pairs = count * len(positions)
+            rows = []
+            for tolerance in ROOFLINE_TOLERANCES:
+                RE.CHEBYSHEV_TOLERANCE = tolerance
+                seconds, _ = _best(run)
+                rows.append((used[-1], seconds))
+            terms, seconds = np.array(rows, dtype=float).T
+            per_term = np.polyfit(terms, seconds / pairs, 1)[0]  # seconds per pair and term
+            full = int(terms[-1])
+            flops = setup_flops + term_flops * (full - 2)
+            series = per_term * (full - 2)  # seconds per pair in the terms beyond l = 1
+            out[name] = {
+                "pairs": pairs, "terms": full, "ns_per_pair": 1e9 * seconds[-1] / pairs,
+                "flops_per_pair": flops, "gflops": flops * pairs / seconds[-1] / 1e9,
+                "bytes_per_pair": pair_bytes, "flops_per_byte": flops / pair_bytes,
+                "series_share": series * pairs / seconds[-1],
+                "setup_gflops": setup_flops / (seconds[-1] / pairs - series) / 1e9,
+                "series_gflops": term_flops / per_term / 1e9,
+                "terms_and_seconds": [[int(a), float(b)] for a, b in rows],
+            }
+    finally:
+        RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients = default_tolerance, coefficients
+    gain = RE.CORNER_GAIN_LIMIT
+    try:
+        RE.CORNER_GAIN_LIMIT = math.inf
+        unflagged, _ = _best(cases["po"][0])
+    finally:
+        RE.CORNER_GAIN_LIMIT = gain
+    with_exact, _ = _best(cases["po"][0])
+    out["po"]["exact_pairs_share_of_time"] = max(0.0, (with_exact - unflagged) / with_exact)
+    return out
+
+
 def speckle_row(verts, faces, radar, images, seeds: int = 5) -> dict:
     """The diffuse part's statistics: on a plate (bench.speckle.plate_statistics) and on this heart.
 
@@ -254,6 +355,8 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
         "views": views,
         "embree_rays_per_second": ray_count / ray_seconds,
         "gpu": gpu_row(verts, faces, radar, images, cpu_views),
+        "machine": machine_rates(),
+        "roofline": roofline(verts, faces, radar, radar.views[0], scatterers),
         "speckle": speckle,
         "targets": {
             "diffuse_seconds_per_view": {"target": TARGET_DIFFUSE_SECONDS, "measured_max": worst_diffuse,
