@@ -108,3 +108,23 @@ def test_radar_roofline_counts_the_series_it_ran_and_restores_the_echo():
         terms = [t for t, _ in row["terms_and_seconds"]]
         assert terms == sorted(terms) and terms[0] < terms[-1] == row["terms"]
         assert row["flops_per_pair"] == setup + per_term * (row["terms"] - 2) and row["pairs"] > 0
+
+
+def test_radar_scaling_times_each_mesh_and_aperture_and_fits_exponents():
+    import numpy as np
+    import trimesh
+
+    from meshsar_builder.bench import radar as BR
+    from meshsar_builder.radar.imaging import ImageParams
+    from meshsar_builder.radar.params import RadarParams
+
+    mesh = trimesh.creation.icosphere(4, radius=40.0)
+    radar = RadarParams(aperture=(8, 8), step_mm=20.0, n_samples=16)
+    result = BR.scaling(np.asarray(mesh.vertices), np.asarray(mesh.faces), ImageParams(size=16), radar,
+                        vertex_counts=(300, 600, 1200), sides=(8, 16))
+    faces = [row["faces"] for row in result["by_mesh"]]
+    assert faces == sorted(faces) and faces[0] < faces[-1] and [r["antennas"] for r in result["by_aperture"]] == [64, 256]
+    visible = [row["visible_facets"] for row in result["by_mesh"]]
+    assert visible == sorted(visible) and visible[0] > 0
+    for key in ("seconds_echo", "seconds_diffuse", "seconds_imaging"):
+        assert np.isfinite(result["exponent_faces"][key]) and np.isfinite(result["exponent_antennas"][key])

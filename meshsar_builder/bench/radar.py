@@ -238,6 +238,55 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
     return out
 
 
+SCALING_VERTICES = (1500, 3000, 6000, 12000)  # mesh sizes (the demo template has 6,000)
+SCALING_APERTURES = (20, 40, 80)  # antennas a side over the same 160 mm (steps 8, 4, 2 mm)
+
+
+def scaling(verts, faces, images, radar=None, vertex_counts=SCALING_VERTICES, sides=SCALING_APERTURES) -> dict:
+    """How one view's echo and imaging grow with the mesh and the aperture: seconds and log-log exponents.
+
+    verts, faces: a heart surface finer than the largest of vertex_counts, simplified to each
+    (centred). The aperture keeps its extent (160 mm at the defaults) and z0 and takes
+    `sides` antennas a side. Facet integral with the diffuse part, anterior view, best of
+    REPEATS on this core; radar defaults to RadarParams().
+    """
+    import dataclasses
+
+    import meshsar_builder.radar.diffuse as RD
+    import meshsar_builder.radar.params as RP
+    import meshsar_builder.radar.visibility as RV
+    from meshsar_builder.geometry.remesh import simplify
+
+    radar = radar or RP.RadarParams()
+    extent = radar.aperture[0] * radar.step_mm
+    meshes = []
+    for count in vertex_counts:
+        v, f = simplify(verts, faces, count)
+        meshes.append((v - (v.min(axis=0) + v.max(axis=0)) / 2, f))
+    by_mesh = []
+    for v, f in meshes:
+        scatterers = RD.draw_scatterers(v, f, radar.diffuse_density_per_mm2, np.random.default_rng(0))
+        row = view_seconds(v, f, RV.embree_intersector(v, f), radar, images, "anterior", scatterers)
+        by_mesh.append({"faces": int(len(f)), "visible_facets": row["visible_facets"],
+                        **{k: row[k] for k in ("seconds_echo", "seconds_diffuse", "seconds_imaging")}})
+    v, f = meshes[len(meshes) // 2]
+    scatterers = RD.draw_scatterers(v, f, radar.diffuse_density_per_mm2, np.random.default_rng(0))
+    by_aperture = []
+    for side in sides:
+        sized = dataclasses.replace(radar, aperture=(side, side), step_mm=extent / side)
+        row = view_seconds(v, f, RV.embree_intersector(v, f), sized, images, "anterior", scatterers)
+        by_aperture.append({"antennas": side * side,
+                            **{k: row[k] for k in ("seconds_echo", "seconds_diffuse", "seconds_imaging")}})
+
+    def exponent(rows, x):
+        return {k: float(np.polyfit(np.log([r[x] for r in rows]), np.log([r[k] for r in rows]), 1)[0])
+                for k in ("seconds_echo", "seconds_diffuse", "seconds_imaging")}
+
+    return {"by_mesh": by_mesh, "by_aperture": by_aperture,
+            "exponent_faces": exponent(by_mesh, "visible_facets"), "exponent_antennas": exponent(by_aperture,
+                                                                                                 "antennas")}
+
+
 def speckle_row(verts, faces, radar, images, seeds: int = 5) -> dict:
     """The diffuse part's statistics: on a plate (bench.speckle.plate_statistics) and on this heart.
 
@@ -283,8 +332,11 @@ def speckle_targets(speckle: dict) -> dict:
     }
 
 
-def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
-    """The benchmark numbers at default parameters (call on one core; run() arranges that)."""
+def measure(verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """The benchmark numbers at default parameters (call on one core; run() arranges that).
+
+    fine: a finer surface of the same heart for the scaling row (left out without it).
+    """
     import dataclasses
 
     import meshsar_builder.radar.diffuse as RD
@@ -357,6 +409,7 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
         "gpu": gpu_row(verts, faces, radar, images, cpu_views),
         "machine": machine_rates(),
         "roofline": roofline(verts, faces, radar, radar.views[0], scatterers),
+        "scaling": scaling(*fine, images) if fine is not None else None,
         "speckle": speckle,
         "targets": {
             "diffuse_seconds_per_view": {"target": TARGET_DIFFUSE_SECONDS, "measured_max": worst_diffuse,
@@ -372,12 +425,17 @@ def measure(verts: np.ndarray, faces: np.ndarray) -> dict:
     }
 
 
-def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray) -> dict:
-    """Benchmark the radar on a mesh (verts (n, 3) mm heart frame, faces (m, 3)); writes out_dir/'radar.json'."""
+def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """Benchmark the radar on a mesh (verts (n, 3) mm heart frame, faces (m, 3)); writes out_dir/'radar.json'.
+
+    fine: (verts, faces) of a finer surface of the same heart, for the scaling row.
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh_path, result_path = out_dir / "radar-bench-mesh.npz", out_dir / "radar.json"
-    np.savez(mesh_path, verts=np.asarray(verts, dtype=np.float64), faces=np.asarray(faces, dtype=np.int64))
+    extra = {} if fine is None else {"fine_verts": np.asarray(fine[0], dtype=np.float64),
+                                     "fine_faces": np.asarray(fine[1], dtype=np.int64)}
+    np.savez(mesh_path, verts=np.asarray(verts, dtype=np.float64), faces=np.asarray(faces, dtype=np.int64), **extra)
     env = {**os.environ, **{name: "1" for name in THREAD_VARIABLES}}
     try:
         subprocess.run([sys.executable, "-m", __name__, str(mesh_path), str(result_path)], env=env, check=True)
@@ -399,7 +457,8 @@ def _main(mesh_path: str, result_path: str | None = None) -> None:
         print(first_echo_seconds())
         return
     with np.load(mesh_path) as mesh:
-        write_json(result_path, measure(mesh["verts"], mesh["faces"]))
+        fine = (mesh["fine_verts"], mesh["fine_faces"]) if "fine_verts" in mesh else None
+        write_json(result_path, measure(mesh["verts"], mesh["faces"], fine))
 
 
 if __name__ == "__main__":

@@ -77,8 +77,10 @@ def demo_mesh() -> tuple[np.ndarray, np.ndarray]:
 
 def bench_radar(out: Path) -> dict:
     from meshsar_builder.bench.radar import run
+    from meshsar_builder.geometry.remesh import RemeshParams, remesh
 
-    return run(out, *demo_mesh())
+    surface = demo_subject(0)  # remeshed at half the demo's edge: the scaling row's finest mesh
+    return run(out, *demo_mesh(), fine=remesh(surface.verts, surface.faces, RemeshParams(edge_mm=1.25)))
 
 
 def _timed(fn, *args):
