@@ -201,3 +201,23 @@ def test_frames_sharing_scatterers_give_correlated_speckle():
     rough = SP.cycle_correlation(frames, sphere.faces, 0.25, seed=3,
                                  radar=dataclasses.replace(radar, diffuse_sigma0_db=20.0))
     assert all(abs(value) < 0.1 for value in rough["fresh"].values()) and rough["shared"][1] > 0.9
+
+
+def test_appearance_measures_silhouette_share_and_depth_against_the_mesh():
+    """radar.appearance on a plate facing the anterior view, with channels made by hand."""
+    from meshsar_builder.radar.appearance import surface_depth, view_appearance
+
+    verts, faces = SP.plate(60.0, 40.0)
+    images = ImageParams(size=32)
+    surface = surface_depth(verts + RP.view_frame("anterior")[2] * 7.0, faces, "anterior", images)
+    inside = np.isfinite(surface)
+    assert inside.mean() == pytest.approx(60 * 40 / 160**2, abs=0.02) and np.allclose(surface[inside], 7.0)
+    intensity = np.where(inside, 1.0, 0.0)
+    intensity[inside.nonzero()[0][0], inside.nonzero()[1][0]] = 0.4  # one pixel 24 dB down
+    depth = np.where(inside, (7.0 + 4.0) / (images.fov_mm / 2), 0.0)  # read 4 mm off the plate
+    look = view_appearance(np.stack([intensity, depth]), surface, images)
+    assert look["speckle_share"] == pytest.approx(1 - 1 / inside.sum())
+    assert look["depth_error_median_mm"] == pytest.approx(4.0) and look["depth_within_5mm"] == 1.0
+    depth[~inside] = 0.5  # detections off the mesh count as infinitely far
+    look = view_appearance(np.stack([intensity, depth]), surface, images)
+    assert look["detected_px"] == depth.size and look["depth_within_5mm"] == pytest.approx(inside.mean())

@@ -45,11 +45,17 @@ def test_every_stage_runs_and_the_dataset_verifies(smoke):
     assert report["specificity_draws"] == 1000 and len(report["specificity_curve_mm"]) == report["modes"]
     assert sorted(p.name for p in (out / "ssm" / "specificity").glob("*.npz")) == [f"{c}.npz" for c in range(4)]
     card = (out / "card" / "README.md").read_text()
-    for section in ("## Samples", "## Shape model", "## Dynamic subjects", "## Frames in correspondence", "## Counts",
-                    "## Time per stage"):
+    for section in ("## Samples", "## Speckle", "## Shape model", "## Dynamic subjects", "## Frames in correspondence",
+                    "## Counts", "## Time per stage"):
         assert section in card
-    for png in ("gallery.png", "ssm_variance.png", "ssm_modes.png", "cycle.png", "motion.png"):
+    for png in ("gallery.png", "speckle.png", "ssm_variance.png", "ssm_modes.png", "cycle.png", "motion.png"):
         assert (out / "card" / png).stat().st_size > 1000
+    # diffuse scatterers: a shape-model sample draws its own; frames in correspondence share their reference's
+    for sid in index["samples"]:
+        meta = read_json(out / "radar" / f"{sid}.json")["meta"]
+        shared = meta.get("correspondence") in ("reference", "tracked")
+        assert meta["scatterers"] == (meta["reference_frame"] if shared else sid), sid
+        assert len(meta["appearance"]) == 3 and 0 <= meta["appearance"][0]["speckle_share"] <= 1
     split = read_json(out / "splits" / "seed-0.json")
     assert sorted(split["train"] + split["test"]) == sorted(index["samples"])
 

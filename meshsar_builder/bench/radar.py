@@ -77,11 +77,9 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
     t_echo, signal = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar))
     t_diffuse, lit_count = 0.0, 0
     if scatterers is not None:
-        points, normals, weights = RD.place(verts, faces, scatterers, radar)
-        lit = vis[scatterers.face] > 0
-        lit_count = int(lit.sum())
-        t_diffuse, _ = _best(lambda: RE.point_echo(points[lit], normals[lit], weights[lit] * vis[scatterers.face[lit]],
-                                                   positions, freqs, RD.lambert(radar)))
+        lit = RD.seen_by(*RD.place(verts, faces, scatterers, radar), scatterers.face, vis)
+        lit_count = len(lit[2])
+        t_diffuse, _ = _best(lambda: RE.point_echo(*lit, positions, freqs, RD.lambert(radar)))
     signal = signal.reshape(*radar.aperture, radar.n_samples)
     t_img, volume = _best(lambda: view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
     return {"visible_facets": int(seen.sum()), "visible_scatterers": lit_count, "seconds_visibility": t_vis,
@@ -185,12 +183,10 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
     vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
     seen = vis > 0
     tri = verts[faces][seen]
-    points, normals, weights = RD.place(verts, faces, scatterers, radar)
-    lit = vis[scatterers.face] > 0
+    lit = RD.seen_by(*RD.place(verts, faces, scatterers, radar), scatterers.face, vis)
     cases = {
         "po": (lambda: RE.echo(tri, vis[seen], positions, freqs, radar), int(seen.sum()), FLOPS_PO, BYTES_PO),
-        "diffuse": (lambda: RE.point_echo(points[lit], normals[lit], weights[lit] * vis[scatterers.face[lit]],
-                                          positions, freqs, RD.lambert(radar)), int(lit.sum()), FLOPS_POINT,
+        "diffuse": (lambda: RE.point_echo(*lit, positions, freqs, RD.lambert(radar)), len(lit[2]), FLOPS_POINT,
                     BYTES_POINT),
     }
     default_tolerance, coefficients = RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients
@@ -262,15 +258,14 @@ def scaling(verts, faces, images, radar=None, vertex_counts=SCALING_VERTICES, si
     meshes = []
     for count in vertex_counts:
         v, f = simplify(verts, faces, count)
-        meshes.append((v - (v.min(axis=0) + v.max(axis=0)) / 2, f))
+        v = v - (v.min(axis=0) + v.max(axis=0)) / 2
+        meshes.append((v, f, RD.draw_scatterers(v, f, radar.diffuse_density_per_mm2, np.random.default_rng(0))))
     by_mesh = []
-    for v, f in meshes:
-        scatterers = RD.draw_scatterers(v, f, radar.diffuse_density_per_mm2, np.random.default_rng(0))
+    for v, f, scatterers in meshes:
         row = view_seconds(v, f, RV.embree_intersector(v, f), radar, images, "anterior", scatterers)
         by_mesh.append({"faces": int(len(f)), "visible_facets": row["visible_facets"],
                         **{k: row[k] for k in ("seconds_echo", "seconds_diffuse", "seconds_imaging")}})
-    v, f = meshes[len(meshes) // 2]
-    scatterers = RD.draw_scatterers(v, f, radar.diffuse_density_per_mm2, np.random.default_rng(0))
+    v, f, scatterers = meshes[len(meshes) // 2]
     by_aperture = []
     for side in sides:
         sized = dataclasses.replace(radar, aperture=(side, side), step_mm=extent / side)

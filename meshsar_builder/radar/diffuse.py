@@ -114,6 +114,17 @@ def place(verts: np.ndarray, faces: np.ndarray, scatterers: Scatterers,
     return points, normals[scatterers.face], scatterers.gain * scale
 
 
+def seen_by(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, face: np.ndarray,
+            visibility: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scatterers a view sees: those on facets with visibility > 0, weights times that visibility.
+
+    points, normals (K, 3), weights (K,) from place(); face (K,) their host faces;
+    visibility (F,) per facet (radar.visibility.visibility), as the facet echo weighs facets.
+    """
+    on = visibility[face] > 0
+    return points[on], normals[on], weights[on] * visibility[face[on]]
+
+
 def lambert(radar: RadarParams) -> RadarParams:
     """radar with the diffuse angular law: the echo's lobe g(x) = (1 - kappa) x^p + kappa x at p = 1, kappa = 0."""
     return dataclasses.replace(radar, p=1.0, kappa=0.0)

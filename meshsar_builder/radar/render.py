@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from meshsar_builder.radar.appearance import surface_depth, view_appearance
-from meshsar_builder.radar.diffuse import Scatterers, draw_scatterers, lambert, place
+from meshsar_builder.radar.diffuse import Scatterers, draw_scatterers, lambert, place, seen_by
 from meshsar_builder.radar.echo import echo, point_echo
 from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images
 from meshsar_builder.radar.noise import add_noise, draw_seeds, unit_noise
@@ -118,11 +118,9 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         t_diffuse = time.perf_counter()
         diffuse_power, n_scatterers = None, 0
         if diffuse is not None:
-            at, normals, weights, host = diffuse
-            lit = vis[host] > 0
-            n_scatterers = int(lit.sum())
-            diffuse_echo = view_point_echo(at[lit], normals[lit], weights[lit] * vis[host[lit]], positions, freqs,
-                                           lambert(radar))
+            lit = seen_by(*diffuse, vis)
+            n_scatterers = len(lit[2])
+            diffuse_echo = view_point_echo(*lit, positions, freqs, lambert(radar))
             diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
             signal = signal + diffuse_echo
         signal = signal.reshape(shape)
