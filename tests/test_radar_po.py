@@ -217,7 +217,7 @@ def view_echo_and_intensity(verts, faces, radar, images, view):
     vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
     seen = vis > 0
     freqs, (x, y) = RP.frequencies(radar), RP.aperture_axes(radar)
-    signal = RE.echo(verts[faces][seen], vis[seen], RP.aperture_positions(radar, view), freqs, radar)
+    signal = RE.echo(verts[faces][seen], vis[seen], RP.aperture(radar, view), freqs, radar)  # production: factorised
     intensity = view_images(signal.reshape(*radar.aperture, -1), freqs, x, y, radar.z0_mm, images)[0]
     return signal, intensity
 

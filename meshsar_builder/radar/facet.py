@@ -10,22 +10,11 @@ import math
 import numpy as np
 
 from meshsar_builder.pipeline.errors import MeshsarError
+from meshsar_builder.radar.jit import KERNEL_OPTIONS as _KERNEL_OPTIONS
+from meshsar_builder.radar.jit import NUMBA_MISSING as _NUMBA_MISSING
+from meshsar_builder.radar.jit import njit
 from meshsar_builder.radar.visibility import triangle_geometry
 
-try:
-    from numba import njit
-except ImportError as _numba_error:  # a declared dependency: fail when the echo is asked for
-    _NUMBA_MISSING = f"the radar echo needs numba (pip install numba); importing it failed: {_numba_error}"
-
-    def njit(*args, **kwargs):
-        def missing(*a, **k):
-            raise MeshsarError(_NUMBA_MISSING)
-
-        return lambda function: missing
-else:
-    _NUMBA_MISSING = None
-
-_KERNEL_OPTIONS = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
 # Below this phase spread k (max b - min b) (rad) the divided difference is summed as
 # its Taylor series about the corners' mean: 18 terms reach 1e-16 there.
 SERIES_SPREAD = 1.0

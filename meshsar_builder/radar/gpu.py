@@ -31,7 +31,7 @@ import numpy as np
 
 from meshsar_builder.pipeline.errors import MeshsarError
 from meshsar_builder.radar.imaging import ImageParams, aperture_window, pixel_centres, range_slices, spectral_grid
-from meshsar_builder.radar.params import RadarParams
+from meshsar_builder.radar.params import Aperture, RadarParams
 from meshsar_builder.radar.visibility import triangle_geometry
 
 try:
@@ -128,9 +128,10 @@ def _direct_sum(scatterers, normals, weights, edges, positions, freqs, radar: Ra
     """The direct sum of echo_chunk over chunks on `device`: (M, N) complex128.
 
     scatterers, normals (K, 3); weights (K,) float; edges (K, 3, 3) corner offsets for the
-    facet integral, or None for point scatterers; positions (M, 3) mm; freqs (N,) Hz.
+    facet integral, or None for point scatterers; positions (M, 3) mm or an Aperture; freqs (N,) Hz.
     """
     dev = check_device(device)
+    positions = positions.positions if isinstance(positions, Aperture) else positions  # no factorisation here
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     freqs = np.asarray(freqs, dtype=np.float64)
     if len(weights) == 0 or len(positions) == 0:

@@ -37,7 +37,7 @@ PROBES = ("corners", "centre")
 # 40 dB display (a raw SNR of 30 dB left it ~62 dB down, invisible) and leaves the glints
 # within 18 dB of the peak detected for the depth channel (DETECTION_MARGIN_DB).
 DEFAULT_IMAGE_SNR_DB = 30.0
-ECHO_METHODS = ("chebyshev", "direct")
+ECHO_METHODS = ("factorised", "chebyshev", "direct")
 # The radar loss's stored target, echo_clean, is the noise-free echo on this decimation
 # (ax, ay, af) of the full grid (issue 28, DESIGN section 7). Chosen by measurement
 # (radar.ghosts, point targets at the field of view's edges and corners, +-60 mm deep):
@@ -107,7 +107,7 @@ class RadarParams:
     probes: str = "corners"
     echo_decimation: tuple[int, ...] = (5, 5, 2)
     loss_decimation: tuple[int, ...] = DEFAULT_LOSS_DECIMATION
-    echo_method: str = "chebyshev"
+    echo_method: str = "factorised"
     device: str = "cpu"
     diffuse: bool = True
     diffuse_sigma0_db: float = DEFAULT_DIFFUSE_SIGMA0_DB
@@ -190,9 +190,33 @@ def _plane_points(frame: np.ndarray, z0_mm: float, x_mm: np.ndarray, y_mm: np.nd
     return grid.reshape(-1, 3)
 
 
+@dataclass(frozen=True)
+class Aperture:
+    """A view's planar antenna grid: antenna (i, j) at z0 w + x_i u + y_j v, rows u, v, w of frame.
+
+    frame : (3, 3) float; x_mm : (Nx,) and y_mm : (Ny,) float, increasing. The factorised
+    echo needs this structure; everything else takes `positions`.
+    """
+
+    frame: np.ndarray
+    z0_mm: float
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(Nx * Ny, 3) float: antenna positions (mm, heart frame), row-major over (Nx, Ny)."""
+        return _plane_points(self.frame, self.z0_mm, self.x_mm, self.y_mm)
+
+
+def aperture(radar: RadarParams, view: str) -> Aperture:
+    """The synthetic aperture of a view."""
+    return Aperture(view_frame(view), radar.z0_mm, *aperture_axes(radar))
+
+
 def aperture_positions(radar: RadarParams, view: str) -> np.ndarray:
     """(Nx * Ny, 3) float: antenna positions (mm, heart frame), row-major over (Nx, Ny)."""
-    return _plane_points(view_frame(view), radar.z0_mm, *aperture_axes(radar))
+    return aperture(radar, view).positions
 
 
 def frequencies(radar: RadarParams) -> np.ndarray:

@@ -14,8 +14,8 @@ from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_image
 from meshsar_builder.radar.noise import add_noise, draw_seeds, unit_noise
 from meshsar_builder.radar.params import (
     RadarParams,
+    aperture,
     aperture_axes,
-    aperture_positions,
     frequencies,
     grid_indices,
     probe_points,
@@ -113,7 +113,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         vis, rays = visibility(verts, faces, probe_points(radar, view), intersector)
         t1 = time.perf_counter()
         seen = vis > 0
-        positions = aperture_positions(radar, view)
+        positions = aperture(radar, view)  # the grid, which the numba echo factorises on
         signal = view_echo(tri[seen], vis[seen], positions, freqs, radar, points=points[seen])
         t_diffuse = time.perf_counter()
         diffuse_power, n_scatterers = None, 0

@@ -1,0 +1,147 @@
+"""The factorised echo (radar.echo, "factorised"): against the direct sum and the per-pair series, on shapes
+of its own and on apertures it has not met, and its bytes under thread settings."""
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import meshsar_builder.radar.echo as RE
+import meshsar_builder.radar.params as RP
+import meshsar_builder.radar.visibility as RV
+
+MESHES = {
+    "icosphere": lambda: trimesh.creation.icosphere(4, radius=55.0),
+    "torus": lambda: trimesh.creation.torus(major_radius=45.0, minor_radius=18.0, major_sections=64,
+                                            minor_sections=32),
+    "box": lambda: trimesh.creation.box((90.0, 70.0, 110.0)).subdivide().subdivide().subdivide(),
+    "capsule": lambda: trimesh.creation.capsule(height=80.0, radius=30.0, count=[48, 48]),
+}
+
+SMALL_GRID = {"echo_decimation": (1, 1, 1), "loss_decimation": (1, 1, 1)}  # stored grids for any aperture
+
+
+def relative_error(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+def visible(mesh, radar, view):
+    vis, _ = RV.visibility(mesh.vertices, mesh.faces, RP.probe_points(radar, view))
+    return mesh.triangles[vis > 0], vis[vis > 0]
+
+
+def interpolated(tri, radar, grid):
+    """The clusters that the factorised echo interpolates (not summed on the aperture itself)."""
+    centres = tri.mean(axis=1)
+    k_max = 2 * np.pi * RP.frequencies(radar).max() / (RP.SPEED_OF_LIGHT_M_PER_S * 1e3)
+    return RE.factorised_clusters(centres, tri, grid, k_max)[1]
+
+
+@pytest.mark.parametrize("mesh_name, view, overrides", [
+    ("icosphere", "anterior", {}),
+    ("torus", "left", {"p": 2.5, "kappa": 0.1, "z0_mm": 200.0}),
+    ("box", "superior", {"kappa": 1.0, "reflectivity": "po", "rvp": False}),  # Lambert's kink, full strength
+    ("capsule", "left", {"n_samples": 32, "f0_hz": 60e9}),
+])
+def test_factorised_echo_matches_direct_on_a_full_aperture(mesh_name, view, overrides):
+    """80 x 80 antennas at 2 mm: most clusters interpolated; within 1e-4 of the direct sum (DESIGN section 4)."""
+    radar = RP.RadarParams(**overrides)
+    mesh = MESHES[mesh_name]()
+    tri, vis = visible(mesh, radar, view)
+    grid, freqs = RP.aperture(radar, view), RP.frequencies(radar)
+    clusters = interpolated(tri, radar, grid)
+    assert sum(len(items) for _, items, _, _ in clusters) > 0.9 * len(tri)
+    fast = RE.echo(tri, vis, grid, freqs, radar)
+    assert relative_error(fast, RE.echo(tri, vis, grid, freqs, radar, method="chebyshev")) <= 1e-4
+    antennas = np.random.default_rng(0).choice(len(grid.positions), 48, replace=False)
+    direct = RE.echo(tri, vis, grid.positions[antennas], freqs, radar, method="direct")
+    assert relative_error(fast[antennas], direct) <= 1e-4
+
+
+def test_factorised_echo_on_a_small_aperture_is_the_series():
+    """Where no cluster's grid is smaller than the aperture (two antennas a side), every facet is summed on it."""
+    radar = RP.RadarParams(aperture=(2, 2), step_mm=4.0, n_samples=16, **SMALL_GRID)
+    tri, vis = visible(MESHES["icosphere"](), radar, "left")
+    grid, freqs = RP.aperture(radar, "left"), RP.frequencies(radar)
+    assert interpolated(tri, radar, grid) == []
+    assert relative_error(RE.echo(tri, vis, grid, freqs, radar),
+                          RE.echo(tri, vis, grid.positions, freqs, radar, method="chebyshev")) <= 1e-12
+
+
+def test_points_and_antenna_lists_take_the_series():
+    """Point scatterers, and antennas given as a list, never factorise: the same bytes as the series."""
+    radar = RP.RadarParams(aperture=(40, 40))
+    tri, vis = visible(MESHES["icosphere"](), radar, "anterior")
+    grid, freqs = RP.aperture(radar, "anterior"), RP.frequencies(radar)
+    centres, normals, areas = RV.triangle_geometry(tri)
+    np.testing.assert_array_equal(RE.point_echo(centres, normals, areas, grid, freqs, radar),
+                                  RE.point_echo(centres, normals, areas, grid.positions, freqs, radar,
+                                                method="chebyshev"))
+    np.testing.assert_array_equal(RE.echo(tri, vis, grid.positions, freqs, radar),
+                                  RE.echo(tri, vis, grid.positions, freqs, radar, method="chebyshev"))
+
+
+@settings(max_examples=12, deadline=None)
+@given(nx=st.integers(2, 70), ny=st.integers(2, 70), step=st.floats(1.0, 4.0), z0=st.floats(160.0, 450.0),
+       view=st.sampled_from(sorted(RP.VIEW_FRAMES)), seed=st.integers(0, 2**16))
+def test_factorised_echo_on_apertures_it_has_not_met(nx, ny, step, z0, view, seed):
+    """Any aperture shape, step, range and view; a randomly rotated and shifted torus: within 1e-4 of the series."""
+    radar = RP.RadarParams(aperture=(nx, ny), step_mm=step, z0_mm=z0, n_samples=16, views=(view,), **SMALL_GRID)
+    mesh = trimesh.creation.torus(major_radius=40.0, minor_radius=15.0, major_sections=32, minor_sections=16)
+    rng = np.random.default_rng(seed)
+    mesh.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+    mesh.apply_translation(rng.uniform(-20, 20, 3))
+    tri, vis = visible(mesh, radar, view)
+    grid, freqs = RP.aperture(radar, view), RP.frequencies(radar)
+    reference = RE.echo(tri, vis, grid.positions, freqs, radar, method="chebyshev")
+    assert relative_error(RE.echo(tri, vis, grid, freqs, radar), reference) <= 1e-4
+
+
+def test_clusters_partition_the_items():
+    radar = RP.RadarParams()
+    tri, _ = visible(MESHES["torus"](), radar, "left")
+    grid = RP.aperture(radar, "left")
+    direct, clusters = RE.factorised_clusters(tri.mean(axis=1), tri, grid, 1.7)
+    items = np.concatenate([direct] + [members for _, members, _, _ in clusters])
+    np.testing.assert_array_equal(np.sort(items), np.arange(len(tri)))
+    for centre, members, node_x, node_y in clusters:  # a cluster's grid spans the aperture, inside it
+        assert node_x[0] == grid.x_mm[0] and node_x[-1] == grid.x_mm[-1] and len(node_x) < len(grid.x_mm)
+        assert np.linalg.norm(tri[members].reshape(-1, 3) - centre, axis=1).max() <= RE.FACTORISED_CELL_MM * 3**0.5
+
+
+def test_factorised_echo_bytes_do_not_depend_on_thread_settings():
+    """BLAS (the interpolation's matrix products), OpenMP and numba thread counts of 1 and 2: the same bytes."""
+    script = (
+        "import hashlib, numpy as np, trimesh\n"
+        "import meshsar_builder.radar.echo as RE, meshsar_builder.radar.params as RP\n"
+        "radar = RP.RadarParams(n_samples=16)\n"
+        "mesh = trimesh.creation.icosphere(3, radius=50.0)\n"
+        "out = RE.echo(mesh.triangles, np.ones(len(mesh.faces)), RP.aperture(radar, 'left'), RP.frequencies(radar),\n"
+        "              radar)\n"
+        "print(hashlib.sha256(out.tobytes()).hexdigest())\n"
+    )
+    digests = set()
+    for threads in ("1", "2"):
+        env = {**os.environ, **{name: threads for name in (
+            "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}}
+        run = subprocess.run([sys.executable, "-c", script], env=env, cwd=Path(__file__).parents[1],
+                             capture_output=True, text=True, check=True)
+        digests.add(run.stdout.strip())
+    assert len(digests) == 1
+    assert hashlib.sha256(b"").hexdigest() not in digests
+
+
+def test_aperture_positions_are_the_grid():
+    radar = RP.RadarParams(aperture=(7, 5), step_mm=3.0)
+    for view in RP.VIEW_FRAMES:
+        grid = RP.aperture(radar, view)
+        np.testing.assert_array_equal(grid.positions, RP.aperture_positions(radar, view))
+        np.testing.assert_allclose(grid.positions.reshape(7, 5, 3)[:, 0] - grid.positions.reshape(7, 5, 3)[0, 0],
+                                   np.outer(grid.x_mm - grid.x_mm[0], RP.view_frame(view)[0]), atol=1e-12)
