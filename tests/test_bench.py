@@ -128,3 +128,21 @@ def test_radar_scaling_times_each_mesh_and_aperture_and_fits_exponents():
     assert visible == sorted(visible) and visible[0] > 0
     for key in ("seconds_echo", "seconds_diffuse", "seconds_imaging"):
         assert np.isfinite(result["exponent_faces"][key]) and np.isfinite(result["exponent_antennas"][key])
+
+
+def test_radar_factorised_profile_splits_the_echo_and_restores_it():
+    """The factorised row times the series on the clusters' grids inside the echo, and puts the series back."""
+    import numpy as np
+    import trimesh
+
+    import meshsar_builder.radar.echo as RE
+    from meshsar_builder.bench import radar as BR
+    from meshsar_builder.radar.params import RadarParams
+
+    mesh = trimesh.creation.icosphere(3, radius=50.0)
+    radar = RadarParams(n_samples=16)
+    before = RE._series_echo
+    row = BR.factorised_profile(np.asarray(mesh.vertices), np.asarray(mesh.faces), radar, "anterior")
+    assert RE._series_echo is before
+    assert row["clusters"] > 0 and 0 < row["pairs_share_of_the_series"] < 1
+    assert 0 < row["seconds_series"] < row["seconds"] and row["seconds_interpolation"] > 0
