@@ -582,8 +582,8 @@ def factorised_clusters(centres: np.ndarray, corners: np.ndarray, grid: Aperture
     _, cube = np.unique(np.floor(centres / FACTORISED_CELL_MM).astype(np.int64), axis=0, return_inverse=True)
     cube = cube.reshape(-1)
     order = np.argsort(cube, kind="stable")
-    bounds = np.searchsorted(cube[order], np.arange(cube.max() + 2)) if len(cube) else np.zeros(1, dtype=np.int64)
-    direct, clusters = [], []
+    bounds = np.searchsorted(cube[order], np.arange(cube.max() + 2))
+    direct, clusters = [np.zeros(0, dtype=np.int64)], []
     for g in range(len(bounds) - 1):
         members = order[bounds[g]:bounds[g + 1]]
         spans = corners[members].reshape(-1, 3)
@@ -598,7 +598,7 @@ def factorised_clusters(centres: np.ndarray, corners: np.ndarray, grid: Aperture
             direct.append(members)
         else:
             clusters.append((x_c, members, _chebyshev_nodes(x_all, qx), _chebyshev_nodes(y_all, qy)))
-    return np.concatenate(direct) if direct else np.zeros(0, dtype=np.int64), clusters
+    return np.sort(np.concatenate(direct)), clusters
 
 
 @njit(inline="always")
@@ -665,28 +665,45 @@ def _spread_cluster(coarse, node_x, node_y, interp_x, interp_y_t, centre, frame,
                 p_re[j], p_im[j] = p_re[j] * s_re[j] - p_im[j] * s_im[j], p_re[j] * s_im[j] + p_im[j] * s_re[j]
 
 
-def _echo_factorised(points, normals, weights, offsets, grid, freqs, radar):
-    """The factorised echo on an aperture grid (see above)."""
+def _echo_factorised(parts, grid, freqs):
+    """The factorised echo on an aperture grid (see above) of one or more parts summed.
+
+    parts : tuples (points, normals, weights, offsets, radar) of one kind each: facets
+    (offsets (K, 3, 3)) or point scatterers (offsets None), radar giving their pattern.
+    The parts share the clusters, so one interpolation serves them all.
+    """
     if _NUMBA_MISSING:
         raise MeshsarError(_NUMBA_MISSING)
     df = _uniform_step(freqs)
-    corners = points[:, None, :] if offsets is None else points[:, None, :] + offsets
-    direct, clusters = factorised_clusters(points, corners, grid, float(_wavenumbers(freqs).max()))
+    centres = np.concatenate([part[0] for part in parts])
+    corners = np.concatenate([part[0][:, None, :] + (0.0 if part[3] is None else part[3]) * np.ones((1, 3, 1))
+                              for part in parts])  # (K, 3, 3): a point is its own three corners
+    kind = np.repeat(np.arange(len(parts)), [len(part[0]) for part in parts])
+    start_of = np.cumsum([0] + [len(part[0]) for part in parts])
+    direct, clusters = factorised_clusters(centres, corners, grid, float(_wavenumbers(freqs).max()))
     frame = np.ascontiguousarray(grid.frame, dtype=np.float64)
     x_mm, y_mm = (np.asarray(axis, dtype=np.float64) for axis in (grid.x_mm, grid.y_mm))
-    # One series call: the direct items on the aperture, then each cluster on its own grid.
+    # The direct items on the aperture, then each cluster on its own grid: one series call per part.
     groups = [(direct, x_mm, y_mm)] * bool(len(direct)) + [(items, nx, ny) for _, items, nx, ny in clusters]
-    order = np.concatenate([items for items, _, _ in groups])
-    sizes = [len(nx) * len(ny) for _, nx, ny in groups]
-    stops = np.cumsum([len(items) for items, _, _ in groups])
-    rows = _kernel_rows(points[order], normals[order], weights[order], None if offsets is None else offsets[order])
-    summed = _series_echo(rows, _reach(offsets), np.concatenate([Aperture(frame, grid.z0_mm, nx, ny).positions
-                                                                 for _, nx, ny in groups]),
-                          np.repeat(stops - [len(items) for items, _, _ in groups], sizes), np.repeat(stops, sizes),
-                          freqs, radar)
-    if summed is None:  # a span too wide for the series (warned): the direct sum
-        return _echo_direct(points, normals, weights, offsets, grid.positions, freqs, radar)
+    sizes = np.array([len(nx) * len(ny) for _, nx, ny in groups])
+    slots = np.cumsum(np.concatenate([[0], sizes]))
     n = len(freqs)
+    summed = np.zeros((slots[-1], n), dtype=np.complex128)
+    for i, (points, normals, weights, offsets, radar) in enumerate(parts):
+        mine = [items[kind[items] == i] - start_of[i] for items, _, _ in groups]
+        used = [g for g, items in enumerate(mine) if len(items)]
+        if not used:
+            continue
+        order = np.concatenate([mine[g] for g in used])
+        stops = np.cumsum([len(mine[g]) for g in used])
+        rows = _kernel_rows(points[order], normals[order], weights[order], None if offsets is None else offsets[order])
+        part = _series_echo(rows, _reach(offsets), np.concatenate([Aperture(frame, grid.z0_mm, *groups[g][1:])
+                                                                   .positions for g in used]),
+                            np.repeat(stops - [len(mine[g]) for g in used], sizes[used]),
+                            np.repeat(stops, sizes[used]), freqs, radar)
+        if part is None:  # a span too wide for the series (warned): the direct sum
+            return sum(_echo_direct(*each[:4], grid.positions, freqs, each[4]) for each in parts)
+        summed[np.concatenate([np.arange(slots[g], slots[g + 1]) for g in used])] += part
     out = np.zeros((len(x_mm), 2 * n, len(y_mm)))  # antenna (i, j), frequency k: out[i, 2 k (+1), j]
     start = 0
     if len(direct):
@@ -694,7 +711,7 @@ def _echo_factorised(points, normals, weights, offsets, grid, freqs, radar):
                                                       .reshape(len(x_mm), len(y_mm), n, 2).transpose(0, 2, 3, 1))
         start = sizes[0]
     tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
-    half_slope = 0.5 * radar.slope_hz_per_s if radar.rvp else 0.0
+    half_slope = 0.5 * parts[0][4].slope_hz_per_s if parts[0][4].rvp else 0.0
     for centre, _, node_x, node_y in clusters:
         qx, qy = len(node_x), len(node_y)
         coarse = summed[start:start + qx * qy].view(np.float64).reshape(qx, qy, n, 2).transpose(0, 2, 3, 1)
@@ -706,13 +723,16 @@ def _echo_factorised(points, normals, weights, offsets, grid, freqs, radar):
     return (out[:, :, 0] + 1j * out[:, :, 1]).transpose(0, 2, 1).reshape(-1, n)
 
 
-def _prepared(positions, freqs, method, radar, facets: bool):
-    """(positions (M, 3), freqs, the summer, its antennas argument: the Aperture or the positions).
+def _summed(parts, positions, freqs, method, radar):
+    """The echo (M, N) complex128 of parts (tuples points, normals, weights, offsets, radar: see
+    _echo_factorised) on positions, an (M, 3) array or an Aperture, by method (default radar.echo_method).
 
-    "factorised" needs an Aperture and the facet integral; otherwise the series runs. For
-    point scatterers the factorisation measured no faster (their pairs are 4x cheaper than
-    a facet's, so the interpolation costs what it saves) and, under Lambert's law (the
-    diffuse part), 2e-4 to 9e-4 off: the cos theta kink carries all of a point's lobe.
+    "factorised" needs an Aperture and the facet integral (a part with offsets); otherwise
+    the series runs. For point scatterers alone the factorisation measured no faster
+    (their pairs cost a quarter of a facet's, so the interpolation costs what it saves);
+    with facets they share the facets' clusters, and the interpolation costs them nothing.
+    Under Lambert's law the cos theta kink is a point's whole lobe, so the diffuse part
+    is 1-4e-4 off its direct sum (against 1-5e-5 for the facets: docs/radar.md).
     """
     method = radar.echo_method if method is None else method
     if method not in ECHO_METHODS:
@@ -720,10 +740,20 @@ def _prepared(positions, freqs, method, radar, facets: bool):
     freqs = np.asarray(freqs, dtype=np.float64)
     grid = positions if isinstance(positions, Aperture) else None
     positions = np.asarray(positions.positions if grid is not None else positions, dtype=np.float64).reshape(-1, 3)
-    if method == "factorised" and grid is not None and facets:
-        return positions, freqs, _echo_factorised, grid
+    parts = [part for part in parts if len(part[0])]
+    if not parts or len(positions) == 0:
+        return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
+    if method == "factorised" and grid is not None and any(part[3] is not None for part in parts):
+        return _echo_factorised(parts, grid, freqs)
     summer = _echo_direct if method == "direct" else _echo_chebyshev
-    return positions, freqs, summer, positions
+    return sum(summer(*part[:4], positions, freqs, part[4]) for part in parts)
+
+
+def _point_part(points, normals, weights, radar):
+    """A part of point scatterers in the summers' float64 / complex128 arrays."""
+    points, normals = (np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in (points, normals))
+    weights = np.asarray(weights)
+    return points, normals, weights.astype(np.complex128 if np.iscomplexobj(weights) else np.float64), None, radar
 
 
 def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, positions: np.ndarray | Aperture,
@@ -734,38 +764,37 @@ def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, pos
     (mm^2: a facet's visibility times its area, or a diffuse scatterer's complex amplitude);
     positions : (M, 3) float mm, antennas, or a view's params.Aperture (M = Nx Ny, row-major);
     freqs : (N,) float Hz (uniform but for "direct"). method : "direct" (the reference),
-    "chebyshev" (the per-pair series, relative L2 error ~1e-9) or "factorised" (for the facet
-    integral on an Aperture: the series on each cluster's coarse grid, interpolated, error
-    1e-5 to 5e-5; otherwise the series runs, see _prepared); default radar.echo_method.
-    The series methods give the same bytes for the same arguments whatever the thread
-    settings; an antenna's last bits depend on the other antennas of the call (through the
-    common range half-width), not on how the call is scheduled.
+    "chebyshev" (the per-pair series, relative L2 error ~1e-9) or "factorised" (the series
+    here: see _summed); default radar.echo_method. The series gives the same bytes for the
+    same arguments whatever the thread settings; an antenna's last bits depend on the other
+    antennas of the call (through the common range half-width), not on how the call is
+    scheduled.
     """
-    positions, freqs, summer, where = _prepared(positions, freqs, method, radar, facets=False)
-    points, normals = (np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in (points, normals))
-    weights = np.asarray(weights)
-    weights = weights.astype(np.complex128 if np.iscomplexobj(weights) else np.float64)
-    if len(points) == 0 or len(positions) == 0:
-        return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
-    return summer(points, normals, weights, None, where, freqs, radar)
+    return _summed([_point_part(points, normals, weights, radar)], positions, freqs, method, radar)
 
 
 def echo(tri: np.ndarray, visibility: np.ndarray, positions: np.ndarray | Aperture, freqs: np.ndarray,
-         radar: RadarParams, method: str | None = None, points: np.ndarray | None = None) -> np.ndarray:
+         radar: RadarParams, method: str | None = None, points: np.ndarray | None = None,
+         diffuse: tuple | None = None) -> np.ndarray:
     """Noise-free echo s(m, n) of a mesh's facets under radar.facet (DESIGN section 4), complex128 (M, N).
 
     tri : (K, 3, 3) float mm, corners counter-clockwise seen from outside; visibility : (K,)
     float V_k in [0, 1]; positions : (M, 3) antennas, mm, or an Aperture; freqs : (N,) Hz.
     facet "po": each facet's physical-optics integral; "centroid" / "random": a point
-    scatterer of the facet's area at points (K, 3) (default the centroids). method as in
-    point_echo.
+    scatterer of the facet's area at points (K, 3) (default the centroids). diffuse :
+    (points (P, 3), normals (P, 3), weights (P,) complex, pattern radar), point scatterers
+    added to the echo (radar.diffuse: the radar of lambert()). method : "direct",
+    "chebyshev" or "factorised": for the facet integral on an Aperture, the series on each
+    30 mm cluster's Chebyshev grid of antennas, interpolated (relative L2 error 1e-5 to
+    5e-5 against the direct sum; see _summed for the rest); default radar.echo_method.
     """
     tri = np.asarray(tri, dtype=np.float64).reshape(-1, 3, 3)
     centres, normals, areas = triangle_geometry(tri)
     weights = np.asarray(visibility, dtype=np.float64) * areas
-    if radar.facet != "po":
-        return point_echo(centres if points is None else points, normals, weights, positions, freqs, radar, method)
-    positions, freqs, summer, where = _prepared(positions, freqs, method, radar, facets=True)
-    if len(tri) == 0 or len(positions) == 0:
-        return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
-    return summer(centres, normals, weights, tri - centres[:, None, :], where, freqs, radar)
+    if radar.facet == "po":
+        parts = [(centres, normals, weights, tri - centres[:, None, :], radar)]
+    else:
+        parts = [_point_part(centres if points is None else points, normals, weights, radar)]
+    if diffuse is not None:
+        parts.append(_point_part(*diffuse))
+    return _summed(parts, positions, freqs, method, radar)

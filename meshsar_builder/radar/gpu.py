@@ -92,22 +92,27 @@ def _chunks(total: int, size: int):
     return ((start, min(start + size, total)) for start in range(0, total, size))
 
 
-def echo(tri: np.ndarray, visibility: np.ndarray, positions: np.ndarray, freqs: np.ndarray, radar: RadarParams,
-         points: np.ndarray | None = None, device: str = "cuda") -> np.ndarray:
+def echo(tri: np.ndarray, visibility: np.ndarray, positions, freqs: np.ndarray, radar: RadarParams,
+         points: np.ndarray | None = None, diffuse: tuple | None = None, device: str = "cuda") -> np.ndarray:
     """Noise-free echo s(m, n) (M, N) complex128 of a mesh's facets under radar.facet, computed on `device`.
 
     The arguments and the result are those of radar.echo.echo: tri (K, 3, 3) float mm,
-    visibility (K,) float, positions (M, 3) mm, freqs (N,) Hz, points (K, 3) mm the point
-    scatterers of "centroid" / "random" (default the centroids). A direct sum in float64:
-    it equals the CPU production echo to its series' ~1e-9 (DESIGN section 4 allows 1e-4).
+    visibility (K,) float, positions (M, 3) mm or an Aperture, freqs (N,) Hz, points (K, 3)
+    mm the point scatterers of "centroid" / "random" (default the centroids), diffuse the
+    diffuse part's (points, normals, weights, pattern radar) added. A direct sum in
+    float64: the model itself, which the CPU's factorised echo follows to 1e-5 - 4e-4.
     """
     tri = np.asarray(tri, dtype=np.float64).reshape(-1, 3, 3)
     centres, normals, areas = triangle_geometry(tri)
     weights = np.asarray(visibility, dtype=np.float64) * areas
     if radar.facet == "po":
-        return _direct_sum(centres, normals, weights, tri - centres[:, None, :], positions, freqs, radar, device)
-    scatterers = centres if points is None else np.asarray(points, dtype=np.float64)
-    return _direct_sum(scatterers, normals, weights, None, positions, freqs, radar, device)
+        out = _direct_sum(centres, normals, weights, tri - centres[:, None, :], positions, freqs, radar, device)
+    else:
+        scatterers = centres if points is None else np.asarray(points, dtype=np.float64)
+        out = _direct_sum(scatterers, normals, weights, None, positions, freqs, radar, device)
+    if diffuse is not None:
+        out = out + point_echo(*diffuse[:3], positions, freqs, diffuse[3], device)
+    return out
 
 
 def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, positions: np.ndarray,

@@ -67,7 +67,8 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     from a generator spawned from rng, which leaves rng's own stream (the noise seeds) as
     it was. With radar.diffuse false there is no diffuse part and the bytes are those of
     the specular echo alone. The diffuse echo of the scatterers on visible facets (weight
-    times the host facet's visibility, Lambert's law) is added to the facet echo.
+    times the host facet's visibility, Lambert's law) is added to the facet echo, in the
+    same call (the factorised echo interpolates both at once).
 
     The noise is drawn with unit power and imaged on its own (imaging is linear), so
     each view knows its image-domain noise floor and can scale the noise to
@@ -79,11 +80,12 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     `noise_sigma` (V,) float64 (0 without noise), and `views`: per view a dict of `name`,
     `visible_facets` (V_k > 0), `visible_area_mm2` (sum of V_k area_k), `signal_power`
     and `noise_power` (mean per raw sample), `diffuse_power` (the diffuse echo's own mean
-    power; null without it) and `visible_scatterers`, `raw_snr_db`, `noise_floor_db` (the
+    power on the stored echo grid, summed there on its own; null without it) and
+    `visible_scatterers`, `raw_snr_db`, `noise_floor_db` (the
     image noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
     `appearance` (radar.appearance.view_appearance: speckle share, glint contrast, depth
-    error against the mesh), and `seconds` for visibility, echo (specular), diffuse and
-    imaging (with the appearance).
+    error against the mesh), and `seconds` for visibility, echo (the diffuse part
+    included), diffuse (its power on the echo grid) and imaging (with the appearance).
 
     radar.device picks where each view's echo and imaging run (view_functions); the noise
     is drawn here on the CPU from rng either way, so a CUDA build differs from a CPU
@@ -114,15 +116,17 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         t1 = time.perf_counter()
         seen = vis > 0
         positions = aperture(radar, view)  # the grid, which the numba echo factorises on
-        signal = view_echo(tri[seen], vis[seen], positions, freqs, radar, points=points[seen])
+        lit = seen_by(*diffuse, vis) if diffuse is not None else None
+        signal = view_echo(tri[seen], vis[seen], positions, freqs, radar, points=points[seen],
+                           diffuse=None if lit is None else (*lit, lambert(radar)))
         t_diffuse = time.perf_counter()
         diffuse_power, n_scatterers = None, 0
-        if diffuse is not None:
-            lit = seen_by(*diffuse, vis)
+        if lit is not None:  # the diffuse part's own power, where the shards keep the echo
             n_scatterers = len(lit[2])
-            diffuse_echo = view_point_echo(*lit, positions, freqs, lambert(radar))
+            ix, iy, kept_freqs = grid_indices(radar, radar.echo_decimation)
+            on_grid = positions.positions.reshape(*radar.aperture, 3)[np.ix_(ix, iy)].reshape(-1, 3)
+            diffuse_echo = view_point_echo(*lit, on_grid, freqs, lambert(radar))[:, kept_freqs]
             diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
-            signal = signal + diffuse_echo
         signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
         noise = unit_noise(shape, seed) if noisy else None
