@@ -86,7 +86,11 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
         lit_count = len(lit[2])
         t_both, _ = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar,
                                           diffuse=(*lit, RD.lambert(radar))))
-        t_diffuse = max(t_both - t_echo, 0.0)
+        # and its power on the stored echo grid, summed on its own (render_sample's diffuse_power)
+        ix, iy, kept = RP.grid_indices(radar, radar.echo_decimation)
+        on_grid = positions.positions.reshape(*radar.aperture, 3)[np.ix_(ix, iy)].reshape(-1, 3)
+        t_power, _ = _best(lambda: RE.point_echo(*lit, on_grid, freqs, RD.lambert(radar)))
+        t_diffuse = max(t_both - t_echo, 0.0) + t_power
     signal = signal.reshape(*radar.aperture, radar.n_samples)
     t_img, volume = _best(lambda: view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
     return {"visible_facets": int(seen.sum()), "visible_scatterers": lit_count, "seconds_visibility": t_vis,
