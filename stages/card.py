@@ -15,6 +15,7 @@ from collections import defaultdict
 import numpy as np
 
 from meshsar_builder.dataset import card
+from meshsar_builder.dataset.frames import merge_cycles
 from meshsar_builder.dataset.shards import INDEX_NAME
 from meshsar_builder.dataset.splits import RESERVED, split_path
 from meshsar_builder.geometry.meshfile import read_ply
@@ -35,8 +36,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     model = ctx.stage_dir("ssm") / "model.npz"
     split = split_path(ctx.out, ctx.recipe.splits.seed)
     inputs = tuple(str(p) for p in (index_path, split, model, ctx.stage_dir("ssm") / "report.json") if p.exists())
-    tracks = sorted(results.of("track").items())
-    track = tracks[0][1] if tracks else None  # the first beating subject's frames in correspondence
+    tracks = merge_cycles(results.of("track").values())
+    track = tracks[0] if tracks else None  # the first beating subject's frames in correspondence
     if track is not None:
         inputs += tuple(str(ctx.stage_dir("track") / f"{mid}.ply") for mid in track["frames"])
     dynamic = [r for r in results.of("meshes").values() if r.get("frame") is not None]
@@ -57,7 +58,7 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     return [Item("card", tuple(outputs), inputs=inputs, params={"gallery": GALLERY, "version": 1},
                  data={"dynamic": dynamic, "timing": timing, "track": track,
                        "tracks": [[rec["reference"], len(rec["frames"]), len(rec["in_correspondence"])]
-                                  for _, rec in tracks]})]
+                                  for rec in tracks]})]
 
 
 def _median_range(values: list, digits: int) -> str:

@@ -8,7 +8,7 @@ import numpy as np
 from meshsar_builder.geometry.meshfile import read_ply
 from meshsar_builder.pipeline import recipe as R
 from meshsar_builder.pipeline.runner import build
-from meshsar_builder.dataset.frames import subject_series
+from meshsar_builder.dataset.frames import merge_cycles, subject_series
 
 BEATING = """
 name = "beating"
@@ -92,4 +92,10 @@ def test_frames_of_a_subject_are_scanned_in_its_ed_frame(tmp_path):
                 np.testing.assert_array_equal(faces, read_ply(out / "remesh" / f"{s}.ply")[1])
         tracked += sum(radar[s]["meta"]["correspondence"] == "tracked" for s in sids)
     assert tracked >= 2, "at most one frame of the two subjects was tracked"
-    assert set(results.of("track")) == {f"{radar[sids[0]]['meta']['reference_frame']}-cycle" for sids in subjects.values()}
+    # one item per direction round the cycle from the reference; merged, every frame once
+    references = {radar[sids[0]]["meta"]["reference_frame"] for sids in subjects.values()}
+    assert set(results.of("track")) <= {f"{ref}-cycle-{way}" for ref in references for way in ("forward", "backward")}
+    merged = merge_cycles(results.of("track").values())
+    assert [m["reference"] for m in merged] == sorted(references)
+    for m in merged:
+        assert list(m["frames"]) == m["cycle"] and set(m["in_correspondence"]) <= set(m["cycle"])

@@ -19,7 +19,7 @@ from meshsar_builder.geometry.meshing import labels_to_surface, transfer_labels
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import RemeshParams, remesh
 from meshsar_builder.geometry.structures import STRUCTURES as S
-from meshsar_builder.geometry.tracking import track_frames, visit_order
+from meshsar_builder.geometry.tracking import track_frames, visit_chains, visit_order
 
 pytestmark = pytest.mark.slow
 EDGE = RemeshParams(edge_mm=2.5)  # the demo recipe's
@@ -143,6 +143,13 @@ def test_a_rejected_or_invalid_frame_is_left_out_and_the_next_starts_from_the_la
     assert fits[4] is None and "registration subject" in reports[4]["rejected"], reports[4]
     assert reports[5]["from"] == 0  # the cycle's other way round: frame 5 neighbours frame 0
     assert all(fits[i] is not None for i in (1, 3, 5)), [r.get("rejected") for r in reports]
+    # each direction alone (the track stage's items) fits its frames to the same bytes
+    for chain in visit_chains(len(frames), 0):
+        alone, alone_reports = track_frames(frames, 0, PARAMS, lambda i: np.random.default_rng(i), order=chain)
+        for index, _ in chain:
+            assert (alone[index] is None) == (fits[index] is None)
+            assert alone[index] is None or alone[index].tobytes() == fits[index].tobytes()
+            assert {**alone_reports[index], "seconds": 0} == {**reports[index], "seconds": 0}
 
 
 def test_ring_points_move_with_the_surface_and_not_with_its_tessellation():
@@ -179,6 +186,8 @@ def test_ring_points_move_with_the_surface_and_not_with_its_tessellation():
 def test_every_frame_is_visited_once_from_a_neighbour_already_fitted(n, reference):
     order = visit_order(n, reference)
     assert sorted(i for i, _ in order) == [i for i in range(n) if i != reference]
+    chains = visit_chains(n, reference)  # two chains that share only the reference
+    assert [pair for chain in chains for pair in chain] == order and all(chains) and len(chains) <= 2
     done = {reference}
     for index, neighbour in order:
         assert neighbour in done and (index - neighbour) % n in (1, n - 1)

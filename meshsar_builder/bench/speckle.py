@@ -225,6 +225,7 @@ def run(out_dir, data, surface, frames: int = 10, seeds: int = 5) -> dict:
     """
     from pathlib import Path
 
+    from meshsar_builder.dataset.frames import merge_cycles
     from meshsar_builder.geometry.meshfile import read_ply
     from meshsar_builder.geometry.remesh import RemeshParams, remesh
     from meshsar_builder.pipeline.errors import InputError
@@ -242,10 +243,11 @@ def run(out_dir, data, surface, frames: int = 10, seeds: int = 5) -> dict:
                     "mean_difference": abs(coarse["mean_intensity"] / fine["mean_intensity"] - 1),
                     "contrast_difference": abs(coarse["contrast"] / fine["contrast"] - 1)}
 
-    cycles = sorted((data / "track").glob("*-cycle.json"))
+    cycles = merge_cycles(read_json(path) for path in sorted((data / "track").glob("*-cycle-*.json"))
+                          if not path.name.startswith("."))  # a sidecar, not a temporary being written
     if not cycles:
         raise InputError(f"bench speckle: {data} has no beating subject (track stage); build manifests/demo.toml there")
-    track = read_json(cycles[0])
+    track = cycles[0]
     center = np.asarray(read_json(data / "remesh" / f"{track['reference']}.json")["center_mm"])
     ids = [mid for mid in track["frames"] if mid in track["in_correspondence"]][:frames]
     meshes = [read_ply(data / "track" / f"{mid}.ply") for mid in ids]

@@ -254,6 +254,25 @@ def subject_series(records: dict[str, dict], cohorts: dict[str, str] | None = No
     return out
 
 
+def merge_cycles(records) -> list[dict]:
+    """The track stage's records (one per chain of a subject, stages/track.py) joined per subject.
+
+    Returns per subject, in reference order, {reference, cycle, frames: {frame: report} in
+    cycle order, in_correspondence: frames in cycle order}.
+    """
+    subjects: dict[str, dict] = {}
+    for rec in records:
+        merged = subjects.setdefault(rec["reference"], {"reference": rec["reference"], "cycle": rec["cycle"],
+                                                        "frames": {}, "in_correspondence": []})
+        merged["frames"] |= rec["frames"]
+        merged["in_correspondence"] += rec["in_correspondence"]
+    for merged in subjects.values():
+        rank = {mid: i for i, mid in enumerate(merged["cycle"])}
+        merged["frames"] = dict(sorted(merged["frames"].items(), key=lambda kv: rank[kv[0]]))
+        merged["in_correspondence"] = sorted(merged["in_correspondence"], key=rank.__getitem__)
+    return [subjects[ref] for ref in sorted(subjects)]
+
+
 def _cycle_rank(rec: dict, mid: str) -> tuple:
     return rec["frame"] is None, rec["frame"] if rec["frame"] is not None else 0, rec["phase"] != "ED", mid
 

@@ -39,14 +39,23 @@ def frame_params(params: RegistrationParams, steps: int | None = None) -> Regist
                                min_label_agreement=params.frame_min_label_agreement)
 
 
-def visit_order(n_frames: int, reference: int) -> list[tuple[int, int]]:
-    """(frame, neighbour it starts from) pairs, outward from the reference in both directions
+def visit_chains(n_frames: int, reference: int) -> list[list[tuple[int, int]]]:
+    """The (frame, neighbour it starts from) pairs of each direction, outward from the reference
     around the cycle (a cine series is periodic: its last frame neighbours its first), so no
-    frame is more than half a cycle of warm starts from the reference (drift grows with each)."""
+    frame is more than half a cycle of warm starts from the reference (drift grows with each).
+
+    [forward, backward], an empty one left out. The two share only the reference, so they
+    can be fitted side by side (stages/track.py: one item each).
+    """
     forward = n_frames // 2  # of the other n - 1 frames; the extra one of an even count goes forward
-    order = [((reference + k) % n_frames, (reference + k - 1) % n_frames) for k in range(1, forward + 1)]
-    order += [((reference - k) % n_frames, (reference - k + 1) % n_frames) for k in range(1, n_frames - forward)]
-    return order
+    chains = [[((reference + k) % n_frames, (reference + k - 1) % n_frames) for k in range(1, forward + 1)],
+              [((reference - k) % n_frames, (reference - k + 1) % n_frames) for k in range(1, n_frames - forward)]]
+    return [chain for chain in chains if chain]
+
+
+def visit_order(n_frames: int, reference: int) -> list[tuple[int, int]]:
+    """Both chains of visit_chains, forward first."""
+    return [pair for chain in visit_chains(n_frames, reference) for pair in chain]
 
 
 def track_frames(
@@ -54,14 +63,17 @@ def track_frames(
     reference: int,
     params: RegistrationParams,
     rng_for: Callable[[int], np.random.Generator],
+    order: Sequence[tuple[int, int]] | None = None,
 ) -> tuple[list[np.ndarray | None], list[dict]]:
     """Fit every frame of one subject with its reference frame's mesh.
 
     frames : per frame (verts (p, 3) float mm, faces (q, 3) int, labels (p,) int), in cycle
     order, all in one scanner frame; reference : index of the template frame;
-    rng_for : frame index -> its generator (the fit report's surface samples).
+    rng_for : frame index -> its generator (the fit report's surface samples); order : the
+    (frame, neighbour) pairs to fit, default visit_order (every frame; one chain of
+    visit_chains fits that direction alone, to the same result).
     Returns per frame the fitted vertices (n, 3) (faces and labels are the reference's), or
-    None where the fit was rejected, and per frame a report (JSON-ready): `tracked`, `from`
+    None where the fit was rejected or not asked for (an empty report), and per frame a report (JSON-ready): `tracked`, `from`
     (the frame index the fit started from), `seconds`, the fit's figures (mean_mm, p95_mm,
     label_agreement, landmark_error_mm, nricp; of the last attempt), `stiffness_steps` of the
     schedule that was accepted and, for a rejected fit, `rejected` (the reason).
@@ -71,7 +83,7 @@ def track_frames(
     fits[reference] = np.asarray(template_verts, dtype=np.float64)
     reports: list[dict] = [{}] * len(frames)
     reports[reference] = {"tracked": True, "reference": True}
-    order = visit_order(len(frames), reference)
+    order = visit_order(len(frames), reference) if order is None else list(order)
     chain = {reference: [reference]}  # each frame's warm-start chain back to the reference
     for index, neighbour in order:
         chain[index] = [index, *chain[neighbour]]
