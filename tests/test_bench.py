@@ -91,7 +91,7 @@ def test_radar_roofline_counts_the_series_it_ran_and_restores_the_echo():
     import numpy as np
     import trimesh
 
-    import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.series as RS
     from meshsar_builder.bench import radar as BR
     from meshsar_builder.radar.diffuse import draw_scatterers
     from meshsar_builder.radar.params import RadarParams
@@ -100,9 +100,9 @@ def test_radar_roofline_counts_the_series_it_ran_and_restores_the_echo():
     verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     radar = RadarParams(aperture=(6, 6), step_mm=20.0)
     scatterers = draw_scatterers(verts, faces, 0.25, np.random.default_rng(0))
-    before = (RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients, RE.CORNER_GAIN_LIMIT)
+    before = (RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients, RS.CORNER_GAIN_LIMIT)
     result = BR.roofline(verts, faces, radar, "anterior", scatterers)
-    assert (RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients, RE.CORNER_GAIN_LIMIT) == before
+    assert (RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients, RS.CORNER_GAIN_LIMIT) == before
     for name, (setup, per_term) in (("po", BR.FLOPS_PO), ("diffuse", BR.FLOPS_POINT)):
         row = result[name]
         terms = [t for t, _ in row["terms_and_seconds"]]
@@ -135,14 +135,14 @@ def test_radar_factorised_profile_splits_the_echo_and_restores_it():
     import numpy as np
     import trimesh
 
-    import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.series as RS
     from meshsar_builder.bench import radar as BR
     from meshsar_builder.radar.params import RadarParams
 
     mesh = trimesh.creation.icosphere(3, radius=50.0)
     radar = RadarParams(n_samples=16)
-    before = RE._series_echo
+    before = RS._series_echo
     row = BR.factorised_profile(np.asarray(mesh.vertices), np.asarray(mesh.faces), radar, "anterior")
-    assert RE._series_echo is before
+    assert RS._series_echo is before
     assert row["clusters"] > 0 and 0 < row["pairs_share_of_the_series"] < 1
     assert 0 < row["seconds_series"] < row["seconds"] and row["seconds_interpolation"] > 0

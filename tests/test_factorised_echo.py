@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import meshsar_builder.radar.echo as RE
+import meshsar_builder.radar.factorised as RF
 import meshsar_builder.radar.params as RP
 import meshsar_builder.radar.visibility as RV
 
@@ -41,7 +42,7 @@ def interpolated(tri, radar, grid):
     """The clusters that the factorised echo interpolates (not summed on the aperture itself)."""
     centres = tri.mean(axis=1)
     k_max = 2 * np.pi * RP.frequencies(radar).max() / (RP.SPEED_OF_LIGHT_M_PER_S * 1e3)
-    return RE.factorised_clusters(centres, tri, grid, k_max)[1]
+    return RF.factorised_clusters(centres, tri, grid, k_max)[1]
 
 
 @pytest.mark.parametrize("mesh_name, view, overrides", [
@@ -108,12 +109,12 @@ def test_clusters_partition_the_items():
     radar = RP.RadarParams()
     tri, _ = visible(MESHES["torus"](), radar, "left")
     grid = RP.aperture(radar, "left")
-    direct, clusters = RE.factorised_clusters(tri.mean(axis=1), tri, grid, 1.7)
+    direct, clusters = RF.factorised_clusters(tri.mean(axis=1), tri, grid, 1.7)
     items = np.concatenate([direct] + [members for _, members, _, _ in clusters])
     np.testing.assert_array_equal(np.sort(items), np.arange(len(tri)))
     for centre, members, node_x, node_y in clusters:  # a cluster's grid spans the aperture, inside it
         assert node_x[0] == grid.x_mm[0] and node_x[-1] == grid.x_mm[-1] and len(node_x) < len(grid.x_mm)
-        assert np.linalg.norm(tri[members].reshape(-1, 3) - centre, axis=1).max() <= RE.FACTORISED_CELL_MM * 3**0.5
+        assert np.linalg.norm(tri[members].reshape(-1, 3) - centre, axis=1).max() <= RF.FACTORISED_CELL_MM * 3**0.5
 
 
 def test_factorised_echo_bytes_do_not_depend_on_thread_settings():

@@ -10,6 +10,7 @@ import trimesh
 
 import meshsar_builder.radar.echo as RE
 import meshsar_builder.radar.params as RP
+import meshsar_builder.radar.series as RS
 import meshsar_builder.radar.render as RR
 import meshsar_builder.radar.visibility as RV
 from meshsar_builder.pipeline.errors import MeshsarError
@@ -255,7 +256,7 @@ def test_chebyshev_echo_needs_uniform_frequencies():
 
 
 def test_missing_numba_is_a_clear_error(monkeypatch):
-    monkeypatch.setattr(RE, "_NUMBA_MISSING", "the radar echo needs numba (pip install numba)")
+    monkeypatch.setattr(RS, "_NUMBA_MISSING", "the radar echo needs numba (pip install numba)")
     with pytest.raises(MeshsarError, match="needs numba"):
         RE.echo(*echo_case("box", {"n_samples": 7})[0])
 

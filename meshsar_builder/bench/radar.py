@@ -148,7 +148,7 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
 
 
 # Floating-point operations per antenna-scatterer pair of the production kernel
-# (radar.echo._chebyshev_echo), counted from its source with a multiply-add as 2 and a
+# (radar.series._chebyshev_echo), counted from its source with a multiply-add as 2 and a
 # square root, division, min or max as 1 (they take more cycles; the measured rate absorbs
 # that). L is the number of Chebyshev terms.
 # Facet integral: the distance, cos theta and two corner projections (32), the lobe at an
@@ -188,6 +188,7 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
     import meshsar_builder.radar.diffuse as RD
     import meshsar_builder.radar.echo as RE
     import meshsar_builder.radar.params as RP
+    import meshsar_builder.radar.series as RS
     import meshsar_builder.radar.visibility as RV
 
     freqs, positions = RP.frequencies(radar), RP.aperture_positions(radar, view)
@@ -200,7 +201,7 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
         "diffuse": (lambda: RE.point_echo(*lit, positions, freqs, RD.lambert(radar)), len(lit[2]), FLOPS_POINT,
                     BYTES_POINT),
     }
-    default_tolerance, coefficients = RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients
+    default_tolerance, coefficients = RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients
     used = []  # the series' length of each call, as the kernel gets it
 
     def recording(omega, tolerance):
@@ -210,12 +211,12 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
 
     out = {"view": view, "antennas": len(positions), "frequencies": len(freqs)}
     try:
-        RE._chebyshev_coefficients = recording
+        RS._chebyshev_coefficients = recording
         for name, (run, count, (setup_flops, term_flops), pair_bytes) in cases.items():
             pairs = count * len(positions)
             rows = []
             for tolerance in ROOFLINE_TOLERANCES:
-                RE.CHEBYSHEV_TOLERANCE = tolerance
+                RS.CHEBYSHEV_TOLERANCE = tolerance
                 seconds, _ = _best(run)
                 rows.append((used[-1], seconds))
             terms, seconds = np.array(rows, dtype=float).T
@@ -233,13 +234,13 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
                 "terms_and_seconds": [[int(a), float(b)] for a, b in rows],
             }
     finally:
-        RE.CHEBYSHEV_TOLERANCE, RE._chebyshev_coefficients = default_tolerance, coefficients
-    gain = RE.CORNER_GAIN_LIMIT
+        RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients = default_tolerance, coefficients
+    gain = RS.CORNER_GAIN_LIMIT
     try:
-        RE.CORNER_GAIN_LIMIT = math.inf
+        RS.CORNER_GAIN_LIMIT = math.inf
         unflagged, _ = _best(cases["po"][0])
     finally:
-        RE.CORNER_GAIN_LIMIT = gain
+        RS.CORNER_GAIN_LIMIT = gain
     with_exact, _ = _best(cases["po"][0])
     out["po"]["exact_pairs_share_of_time"] = max(0.0, (with_exact - unflagged) / with_exact)
     return out
@@ -247,17 +248,19 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
 
 def factorised_profile(verts, faces, radar, view: str) -> dict:
     """Where the factorised echo's time goes on a view: the series on the clusters' grids, and the rest
-    (interpolation and phases, radar.echo._spread_cluster), with the clusters' sizes."""
+    (interpolation and phases, radar.factorised._spread_cluster), with the clusters' sizes."""
     import meshsar_builder.radar.echo as RE
+    import meshsar_builder.radar.factorised as RF
     import meshsar_builder.radar.params as RP
+    import meshsar_builder.radar.series as RS
     import meshsar_builder.radar.visibility as RV
 
     freqs, grid = RP.frequencies(radar), RP.aperture(radar, view)
     vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
     seen = vis > 0
     tri = verts[faces][seen]
-    direct, clusters = RE.factorised_clusters(tri.mean(axis=1), tri, grid, float(RE._wavenumbers(freqs).max()))
-    series, timed = RE._series_echo, {}
+    direct, clusters = RF.factorised_clusters(tri.mean(axis=1), tri, grid, float(RS._wavenumbers(freqs).max()))
+    series, timed = RS._series_echo, {}
 
     def timing(*args):
         start = time.perf_counter()
@@ -267,12 +270,12 @@ def factorised_profile(verts, faces, radar, view: str) -> dict:
         return out
 
     try:
-        RE._series_echo = timing
+        RS._series_echo = timing
         total, _ = _best(lambda: RE.echo(tri, vis[seen], grid, freqs, radar))
     finally:
-        RE._series_echo = series
+        RS._series_echo = series
     grids = [len(x) * len(y) for _, _, x, y in clusters]
-    return {"view": view, "clusters": len(clusters), "cell_mm": RE.FACTORISED_CELL_MM,
+    return {"view": view, "clusters": len(clusters), "cell_mm": RF.FACTORISED_CELL_MM,
             "facets_on_the_aperture": int(len(direct)), "grid_antennas_median": float(np.median(grids)),
             "series_antennas": timed["antennas"], "series_pairs": timed["pairs"],
             "pairs_share_of_the_series": timed["pairs"] / (int(seen.sum()) * len(grid.positions)),

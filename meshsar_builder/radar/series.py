@@ -1,0 +1,500 @@
+"""The echo's sums (DESIGN section 4): the direct sum, the reference, and the per-pair Chebyshev series.
+
+Geometry is in millimetres in the heart frame; frequencies in Hz, delays in s.
+For every antenna m of a view's synthetic aperture and frequency sample n,
+
+    s(m, n) = sum_k V_k g(cos theta_km) / R_km^2 exp(j 2 pi f_n tau_km) [exp(-j pi S tau_km^2)] F_k(q_kmn)
+
+with F_k the physical-optics integral of exp(j q.(x - c_k)) over facet k (a facet), or its
+weight (a point scatterer). radar.echo is the public entry; radar.factorised runs this
+module's series on coarse grids of antennas.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from meshsar_builder.pipeline.errors import MeshsarError
+from meshsar_builder.radar.facet import (
+    SERIES_SPREAD,
+    SERIES_TERMS,
+    _divided_difference,
+    _divided_differences,
+    _series_coefficients,
+    _series_value,
+)
+from meshsar_builder.radar.imaging import SPEED_OF_LIGHT_MM_PER_S
+from meshsar_builder.radar.jit import KERNEL_OPTIONS as _KERNEL_OPTIONS
+from meshsar_builder.radar.jit import NUMBA_MISSING as _NUMBA_MISSING
+from meshsar_builder.radar.jit import njit
+from meshsar_builder.radar.params import DIRECT_TERMS_PER_CHUNK, SPEED_OF_LIGHT_M_PER_S, RadarParams
+
+_TINY = float(np.finfo(np.float64).tiny)
+
+
+# ---------------------------------------------------------------- reference (direct) sum
+
+
+def _pattern(radar: RadarParams) -> tuple[float, float]:
+    """(p, kappa) of g: the recipe's lobe, or g(x) = x for reflectivity "po"."""
+    return (1.0, 1.0) if radar.reflectivity == "po" else (radar.p, radar.kappa)
+
+
+def _wavenumbers(freqs: np.ndarray) -> np.ndarray:
+    """k_n = 2 pi f_n / c in rad/mm, (N,)."""
+    return 2 * np.pi * freqs / SPEED_OF_LIGHT_MM_PER_S
+
+
+def _reflectivity_factor(freqs: np.ndarray, radar: RadarParams) -> np.ndarray:
+    """(N,) the physical-optics amplitude k_n / 2 pi (1/mm) for reflectivity "po", else ones."""
+    return freqs / SPEED_OF_LIGHT_MM_PER_S if radar.reflectivity == "po" else np.ones_like(freqs)
+
+
+def _amplitude_and_delay(points, normals, weights, positions, radar: RadarParams):
+    """(M, K) amplitude w_k g(cos theta_km) / R_km^2 and round-trip delay tau_km (s).
+
+    R is in mm, so the amplitude is w's unit over mm^2. R^2 comes from |a|^2 - 2 a.c + |c|^2
+    (a BLAS product): in float64 at heart scale its error is ~1e-14 mm, 1e-13 rad of phase.
+    """
+    p, kappa = _pattern(radar)
+    r2 = positions @ (-2.0 * points.T)
+    r2 += np.einsum("mc,mc->m", positions, positions)[:, None]
+    r2 += np.einsum("kc,kc->k", points, points)[None, :]
+    np.maximum(r2, np.finfo(np.float64).tiny, out=r2)
+    r = np.sqrt(r2)
+    cos = positions @ normals.T
+    cos -= np.einsum("kc,kc->k", normals, points)[None, :]
+    cos /= r
+    np.maximum(cos, 0.0, out=cos)
+    amplitude = ((1.0 - kappa) * cos**p + kappa * cos) * weights[None, :] / r2
+    return amplitude, r * (2e-3 / SPEED_OF_LIGHT_M_PER_S), r
+
+
+def _echo_direct(points, normals, weights, offsets, positions, freqs, radar):
+    """The reference sum: every term's phase in float64 and its own complex exponential.
+
+    offsets : (K, 3, 3) corners minus centres for the facet integral, or None for point
+    scatterers. Antennas go in chunks, so that memory stays bounded for any M and K.
+    """
+    out = np.zeros((len(positions), len(freqs)), dtype=np.complex128)
+    wavenumbers = _wavenumbers(freqs)
+    factor = _reflectivity_factor(freqs, radar)
+    chunk = max(1, DIRECT_TERMS_PER_CHUNK // (len(points) * len(freqs)))
+    for start in range(0, len(positions), chunk):
+        antennas = positions[start : start + chunk]
+        amp, tau, r = _amplitude_and_delay(points, normals, weights, antennas, radar)
+        if offsets is not None:
+            toward = (points[None, :, :] - antennas[:, None, :]) / r[:, :, None]  # (m, K, 3) antenna to facet
+            b = 2 * np.einsum("mkc,kic->mki", toward, offsets)
+        cycles = tau[:, :, None] * freqs[None, None, :]
+        if radar.rvp:
+            cycles -= (0.5 * radar.slope_hz_per_s * tau**2)[:, :, None]
+        terms = amp[:, :, None] * np.exp(2j * np.pi * cycles)
+        if offsets is not None:
+            dd = np.empty((b.shape[0] * b.shape[1], len(freqs)), dtype=np.complex128)
+            _divided_differences(np.ascontiguousarray(b.reshape(-1, 3)), wavenumbers, dd)
+            terms *= 2 * dd.reshape(terms.shape)  # F / area = 2 DD; the area is in the weights
+        out[start : start + chunk] = np.einsum("mkn,n->mn", terms, factor)
+    return out
+
+
+# ---------------------------------------------------------------- production echo (numba)
+#
+# For antenna m, with n' = n - (N - 1)/2 and f_c the centre frequency,
+#     s(m, n) = sum_k c_k exp(j 2 pi x_k n'),  c_k = A_k exp(j 2 pi tau_k (f_c - S tau_k / 2) [rvp]),
+# x_k = df tau_k = beta R_k cycles per sample (beta = df 2e-3 / c per mm). With R_k = R_m + h t_k,
+# R_m the middle of antenna m's range interval and h the largest half-width over antennas
+# (so |t_k| <= 1), Jacobi-Anger gives exp(j w t) = sum_l eps_l j^l J_l(w) T_l(t) (eps_0 = 1,
+# else 2), hence
+#     s(m, n) = exp(j 2 pi beta R_m n') sum_l G_l(m) B_l(n'),  G_l(m) = sum_k c_k T_l(t_k),
+#     B_l(n') = eps_l j^l J_l(2 pi beta h n').
+# The series is cut at the first L whose tail sum_{l >= L} eps_l |J_l(w_max)| is below
+# CHEBYSHEV_TOLERANCE, which bounds each term's relative error. The echo is band-limited
+# (the mesh spans a few range cells), so ~14 terms replace the N = 64 samples, and each
+# costs a few real flops per antenna-facet pair; T_l comes from the three-term recurrence.
+#
+# The facet integral enters as three point scatterers per facet. With b_i = 2 u.(p_i - c),
+#     F_k(k_n) = -(2 A / k_n^2) sum_i exp(j k_n b_i) / P_i,  P_i = (b_i - b_l)(b_i - b_l'),
+# so corner i is a scatterer at range R_k + b_i / 2 with the frequency-free weight
+# -2 A / P_i, and the common 1 / k_n^2 multiplies each antenna's finished row. Where some
+# |P_i| < 2 / (CORNER_GAIN_LIMIT k_min^2) (the corners' weights would exceed the area
+# CORNER_GAIN_LIMIT times and cancel), the pair is left out of the series and added exactly
+# per frequency with _divided_difference: facets within ~1 degree of normal incidence, about
+# 1e-4 of the pairs on a heart.
+#
+# The kernels are compiled by numba with fastmath off (no reassociation, no FMA
+# contraction) and loops in a fixed order; every antenna is summed on its own, in one
+# thread, so the bytes do not depend on thread counts or BLAS. The innermost loops run over
+# the scatterers of a block with no loop-carried reduction, so LLVM's loop vectorizer makes
+# them SIMD without reordering any sum: each lane keeps its own partial sums, added at the
+# end in a fixed tree. cos / sin are polynomials (below), not libm calls, so that they
+# vectorize too. A lobe power p that is not an integer goes through libm pow, in a loop of
+# its own (slower, still exact).
+#
+# Measured for the centroid model on one core in one run (2-core machine shared with other
+# jobs; min of 3): 6,400 antennas x 3,460-3,696 visible facets x 64 samples, the three
+# default views of the 100 x 80 x 120 mm ellipsoid, against the direct sum timed on 48
+# antennas and scaled (26-31 s): this 0.14-0.18 s (170-190x; L = 13-14; relative L2 error
+# 2-5e-10); the complex64 baby-step giant-step phasors with a batched BLAS matmul that it
+# replaced 0.61-0.86 s (36-44x, error 8e-7); a float64 phasor recurrence re-anchored every
+# 32 samples, fused and vectorized like this kernel, 0.51-0.60 s (43-57x): 64 complex steps
+# per pair against ~14 real ones. Earlier, on 2,850 facets against 0.38 s for the matmul:
+# FINUFFT 1-D type 1 per antenna (plan reused, eps 1e-6) 0.52 s, mostly per-antenna
+# overhead; FINUFFT 2-D type 1 with the antenna as an on-grid coordinate 0.78 s; Jacobi-Anger
+# in float32 numpy 0.39-0.57 s (memory-bound there). The first call in a process compiles
+# the kernels or loads them from numba's cache in __pycache__.
+
+# Scatterers per block of the vectorized loops (a power of two: the lanes are added as a
+# tree); the facet integral fills a block with the three corners of LANES // 3 facets.
+LANES = 256
+# Truncation of the Chebyshev series (see above); measured relative L2 error against the
+# direct sum ~1e-9, five orders below the 1e-4 that DESIGN section 4 allows (1e-10 costs one
+# term more than 1e-8 and lets the corner weights grow 100 times larger, see below).
+CHEBYSHEV_TOLERANCE = 1e-10
+# Largest |corner weight| / area kept in the series (see above): the series' relative error
+# 1e-10 grows at most to ~3e-6 of such a facet's integral.
+CORNER_GAIN_LIMIT = 1e4
+
+
+@njit(inline="always")
+def _cos_sin(cycles):
+    """cos and sin of 2 pi cycles, error < 1e-11: Taylor polynomials of the half angle in [-pi/2, pi/2], doubled."""
+    h = math.pi * (cycles - math.floor(cycles + 0.5))
+    h2 = h * h
+    s = h * (1.0 + h2 * (-1.0 / 6 + h2 * (1.0 / 120 + h2 * (-1.0 / 5040 + h2 * (1.0 / 362880 + h2 * (
+        -1.0 / 39916800 + h2 * (1.0 / 6227020800 + h2 * (-1.0 / 1307674368000))))))))
+    c = 1.0 + h2 * (-0.5 + h2 * (1.0 / 24 + h2 * (-1.0 / 720 + h2 * (1.0 / 40320 + h2 * (
+        -1.0 / 3628800 + h2 * (1.0 / 479001600 + h2 * (-1.0 / 87178291200 + h2 * (1.0 / 20922789888000))))))))
+    return c * c - s * s, 2.0 * c * s
+
+
+@njit(inline="always")
+def _integer_power(x, p_int):
+    """x ** p_int for 0 <= p_int < 16 by products (no libm call, so loops stay SIMD)."""
+    x2 = x * x
+    x4 = x2 * x2
+    return ((x if p_int & 1 else 1.0) * (x2 if p_int & 2 else 1.0)
+            * (x4 if p_int & 4 else 1.0) * (x4 * x4 if p_int & 8 else 1.0))
+
+
+@njit(**_KERNEL_OPTIONS)
+def _range_bounds(facets, positions, first, last, low, high):
+    """Per antenna m, the least and greatest distance (mm) to the points of facets first[m]:last[m], into low, high (M,)."""
+    block = LANES
+    r2 = np.empty(block)
+    lo = np.empty(block)
+    hi = np.empty(block)
+    for m in range(positions.shape[0]):
+        ax, ay, az = positions[m, 0], positions[m, 1], positions[m, 2]
+        lo[:] = np.inf
+        hi[:] = 0.0
+        for start in range(first[m], last[m], block):
+            stop = min(start + block, last[m])
+            px, py, pz = facets[0, start:stop], facets[1, start:stop], facets[2, start:stop]
+            for k in range(px.shape[0]):
+                dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
+                r2[k] = dx * dx + dy * dy + dz * dz
+            for k in range(px.shape[0]):
+                lo[k] = min(lo[k], r2[k])
+                hi[k] = max(hi[k], r2[k])
+        a, b = lo[0], hi[0]
+        for k in range(1, block):
+            a = min(a, lo[k])
+            b = max(b, hi[k])
+        low[m] = math.sqrt(max(a, _TINY))
+        high[m] = math.sqrt(max(b, _TINY))
+
+
+@njit(**_KERNEL_OPTIONS)
+def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_per_mm, f_centre, half_slope, p, p_int,
+                    kappa, flag_limit, coef_re, coef_im, cycles_per_mm, n_centre, freqs, wavenumbers, factor,
+                    reflectivity, out):
+    """Echo of every antenna into out (M, 2 N) float64 (a complex128 (M, N) viewed as floats).
+
+    facets : (8, K) rows x, y, z, nx, ny, nz, |weight|, arg(weight) / 2 pi (cycles) for point
+    scatterers, or (13, K) rows x, ..., weight and the corner offsets p_0 - c, p_1 - c (rows
+    7-12) for the facet integral; antenna m sums facets first[m]:last[m] (M,); centre_mm : (M,) R_m;
+    coef_re, coef_im : (L, N) B_l(n'); freqs, wavenumbers (rad/mm), factor, reflectivity : (N,):
+    each finished row is multiplied by factor, and a pair added exactly carries reflectivity.
+    p_int >= 0: the lobe power p is that integer (< 16), done by products.
+    """
+    po = facets.shape[0] == 13
+    n_facets = facets.shape[1]
+    per_block = LANES // 3 if po else LANES
+    n_terms, n_samples = coef_re.shape
+    dist = np.empty(per_block)
+    cos_theta = np.empty(per_block)
+    lobe = np.empty(per_block)
+    b_0 = np.empty(per_block)
+    b_1 = np.empty(per_block)
+    exact = np.empty(per_block)
+    t = np.zeros(LANES)
+    c_re = np.zeros(LANES)
+    c_im = np.zeros(LANES)
+    t_even = np.empty(LANES)  # T_l(t) of the last even l, then of the last odd l
+    t_odd = np.empty(LANES)
+    acc_re = np.empty((n_terms, LANES))  # per lane partial sums of G_l
+    acc_im = np.empty((n_terms, LANES))
+    s_re = np.empty(n_samples)
+    s_im = np.empty(n_samples)
+    d_re = np.empty(n_samples)
+    d_im = np.empty(n_samples)
+    flagged = np.empty(n_facets, dtype=np.int64)
+    work = np.empty(SERIES_TERMS)
+    k_max = wavenumbers.max()
+    for m in range(positions.shape[0]):
+        ax, ay, az, r_m = positions[m, 0], positions[m, 1], positions[m, 2], centre_mm[m]
+        acc_re[:] = 0.0
+        acc_im[:] = 0.0
+        n_flagged = 0
+        for start in range(first[m], last[m], per_block):
+            stop = min(start + per_block, last[m])
+            size = stop - start
+            px, py, pz = facets[0, start:stop], facets[1, start:stop], facets[2, start:stop]
+            nx, ny, nz = facets[3, start:stop], facets[4, start:stop], facets[5, start:stop]
+            weight = facets[6, start:stop]
+            if po:  # distance, cos(theta) and b_i = 2 u.(p_i - c), u from the antenna to the facet
+                ox0, oy0, oz0 = facets[7, start:stop], facets[8, start:stop], facets[9, start:stop]
+                ox1, oy1, oz1 = facets[10, start:stop], facets[11, start:stop], facets[12, start:stop]
+                for k in range(size):
+                    dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
+                    r = math.sqrt(max(dx * dx + dy * dy + dz * dz, _TINY))
+                    inv_r = 1.0 / r
+                    dist[k] = r
+                    cos_theta[k] = max((nx[k] * dx + ny[k] * dy + nz[k] * dz) * inv_r, 0.0)
+                    b_0[k] = -2.0 * inv_r * (dx * ox0[k] + dy * oy0[k] + dz * oz0[k])
+                    b_1[k] = -2.0 * inv_r * (dx * ox1[k] + dy * oy1[k] + dz * oz1[k])
+            else:  # distance and cos(theta) of each pair
+                for k in range(size):
+                    dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
+                    r = math.sqrt(max(dx * dx + dy * dy + dz * dz, _TINY))
+                    dist[k] = r
+                    cos_theta[k] = max((nx[k] * dx + ny[k] * dy + nz[k] * dz) / r, 0.0)
+            if p_int >= 0:  # not inside the loop: pow is a libm call, which would keep it scalar
+                for k in range(size):
+                    lobe[k] = _integer_power(cos_theta[k], p_int)
+            else:
+                for k in range(size):
+                    lobe[k] = cos_theta[k] ** p
+            if po:
+                for k in range(size):  # three corner scatterers per pair, in lanes k, k + size, k + 2 size
+                    r = dist[k]
+                    amp = -2.0 * weight[k] * ((1.0 - kappa) * lobe[k] + kappa * cos_theta[k]) / (r * r)
+                    tau = r * tau_per_mm
+                    rvp = half_slope * tau * tau
+                    b0 = b_0[k]
+                    b1 = b_1[k]
+                    b2 = -b0 - b1
+                    p0 = (b0 - b1) * (b0 - b2)
+                    p1 = (b1 - b0) * (b1 - b2)
+                    p2 = (b2 - b0) * (b2 - b1)
+                    close = min(abs(p0), min(abs(p1), abs(p2))) < flag_limit
+                    exact[k] = 1.0 if close else 0.0
+                    amp = 0.0 if close else amp / (p0 * p1 * p2)  # one division for the three weights
+                    w0 = amp * p1 * p2
+                    w1 = amp * p0 * p2
+                    w2 = amp * p0 * p1
+                    cos, sin = _cos_sin((tau + 0.5 * b0 * tau_per_mm) * f_centre - rvp)
+                    c_re[k] = w0 * cos
+                    c_im[k] = w0 * sin
+                    t[k] = (r + 0.5 * b0 - r_m) * inv_half_mm
+                    cos, sin = _cos_sin((tau + 0.5 * b1 * tau_per_mm) * f_centre - rvp)
+                    c_re[k + size] = w1 * cos
+                    c_im[k + size] = w1 * sin
+                    t[k + size] = (r + 0.5 * b1 - r_m) * inv_half_mm
+                    cos, sin = _cos_sin((tau + 0.5 * b2 * tau_per_mm) * f_centre - rvp)
+                    c_re[k + 2 * size] = w2 * cos
+                    c_im[k + 2 * size] = w2 * sin
+                    t[k + 2 * size] = (r + 0.5 * b2 - r_m) * inv_half_mm
+                for k in range(size):  # scalar, rare: the pairs to add exactly
+                    if exact[k] != 0.0:
+                        flagged[n_flagged] = start + k
+                        n_flagged += 1
+                size = 3 * size  # a short last block runs only its own lanes
+            else:
+                phase = facets[7, start:stop]
+                for k in range(size):  # amplitude, phase at f_centre and t of each pair
+                    r = dist[k]
+                    amp = weight[k] * ((1.0 - kappa) * lobe[k] + kappa * cos_theta[k]) / (r * r)
+                    tau = r * tau_per_mm
+                    cos, sin = _cos_sin(tau * (f_centre - half_slope * tau) + phase[k])
+                    c_re[k] = amp * cos
+                    c_im[k] = amp * sin
+                    t[k] = (r - r_m) * inv_half_mm
+            a0_re, a0_im = acc_re[0], acc_im[0]
+            for k in range(size):  # l = 0
+                a0_re[k] += c_re[k]
+                a0_im[k] += c_im[k]
+            if n_terms > 1:
+                a1_re, a1_im = acc_re[1], acc_im[1]
+                for k in range(size):  # l = 1
+                    a1_re[k] += c_re[k] * t[k]
+                    a1_im[k] += c_im[k] * t[k]
+                    t_even[k] = 1.0
+                    t_odd[k] = t[k]
+            for l in range(2, n_terms - 1, 2):  # l and l + 1 in one pass: half the loads and stores
+                e_re, e_im, o_re, o_im = acc_re[l], acc_im[l], acc_re[l + 1], acc_im[l + 1]
+                for k in range(size):
+                    even = 2.0 * t[k] * t_odd[k] - t_even[k]
+                    odd = 2.0 * t[k] * even - t_odd[k]
+                    t_even[k] = even
+                    t_odd[k] = odd
+                    e_re[k] += c_re[k] * even
+                    e_im[k] += c_im[k] * even
+                    o_re[k] += c_re[k] * odd
+                    o_im[k] += c_im[k] * odd
+            if n_terms > 2 and n_terms % 2 == 1:  # the last, even, l
+                e_re, e_im = acc_re[n_terms - 1], acc_im[n_terms - 1]
+                for k in range(size):
+                    even = 2.0 * t[k] * t_odd[k] - t_even[k]
+                    e_re[k] += c_re[k] * even
+                    e_im[k] += c_im[k] * even
+        width = LANES  # add the lanes: a fixed tree of vectorized halvings
+        while width > 1:
+            width //= 2
+            for l in range(n_terms):
+                lane_re, lane_im = acc_re[l], acc_im[l]
+                for k in range(width):
+                    lane_re[k] += lane_re[k + width]
+                    lane_im[k] += lane_im[k + width]
+        s_re[:] = 0.0
+        s_im[:] = 0.0
+        for l in range(n_terms):
+            g_re, g_im = acc_re[l, 0], acc_im[l, 0]
+            b_re, b_im = coef_re[l], coef_im[l]
+            for n in range(n_samples):
+                s_re[n] += g_re * b_re[n] - g_im * b_im[n]
+                s_im[n] += g_re * b_im[n] + g_im * b_re[n]
+        shift = r_m * cycles_per_mm  # demodulate: exp(j 2 pi x_m n'), then the common factor
+        for n in range(n_samples):
+            cos, sin = _cos_sin(shift * (n - n_centre))
+            d_re[n] = cos * factor[n]
+            d_im[n] = sin * factor[n]
+        row = out[m]
+        for n in range(n_samples):
+            row[2 * n] = s_re[n] * d_re[n] - s_im[n] * d_im[n]
+            row[2 * n + 1] = s_re[n] * d_im[n] + s_im[n] * d_re[n]
+        for i in range(n_flagged):  # the pairs left out of the series, summed term by term
+            k = flagged[i]
+            dx, dy, dz = ax - facets[0, k], ay - facets[1, k], az - facets[2, k]
+            r = math.sqrt(max(dx * dx + dy * dy + dz * dz, _TINY))
+            x = max((facets[3, k] * dx + facets[4, k] * dy + facets[5, k] * dz) / r, 0.0)
+            power = _integer_power(x, p_int) if p_int >= 0 else x**p
+            amp = 2.0 * facets[6, k] * ((1.0 - kappa) * power + kappa * x) / (r * r)
+            b0 = -2.0 * (dx * facets[7, k] + dy * facets[8, k] + dz * facets[9, k]) / r
+            b1 = -2.0 * (dx * facets[10, k] + dy * facets[11, k] + dz * facets[12, k]) / r
+            b2 = -b0 - b1
+            tau = r * tau_per_mm
+            series = k_max * (max(b0, max(b1, b2)) - min(b0, min(b1, b2))) < SERIES_SPREAD
+            if series:  # near normal incidence, the usual case: one set of coefficients for all k
+                _series_coefficients(b0, b1, b2, work)
+            for n in range(n_samples):
+                cos, sin = _cos_sin(tau * (freqs[n] - half_slope * tau))
+                dd = _series_value(work, wavenumbers[n]) if series else _divided_difference(
+                    b0, b1, b2, wavenumbers[n], work)
+                term = amp * reflectivity[n] * dd
+                row[2 * n] += term.real * cos - term.imag * sin
+                row[2 * n + 1] += term.real * sin + term.imag * cos
+
+
+def _series_order(w_max: float, tolerance: float) -> int:
+    """The fewest Jacobi-Anger terms L with sum_{l >= L} eps_l |J_l(w_max)| <= tolerance (at least 1).
+
+    J_l(w) decays faster than exponentially once l exceeds w by a few w^(1/3), so the
+    orders searched reach w + 20 w^(1/3) + 64; a tail that has not converged there is an
+    error, never a silent cut.
+    """
+    from scipy.special import jv
+
+    orders = np.arange(int(w_max + 20 * w_max ** (1 / 3)) + 64)
+    bound = np.abs(jv(orders, w_max)) * np.where(orders == 0, 1.0, 2.0)
+    tail = np.cumsum(bound[::-1])[::-1]  # tail[L] = sum over l >= L
+    converged = np.flatnonzero(tail <= tolerance)
+    if len(converged) == 0:
+        raise MeshsarError(f"chebyshev echo: the Jacobi-Anger series did not converge to {tolerance:g} within "
+                           f"{len(orders)} terms (w_max = {w_max:.1f}); use echo_method = \"direct\"")
+    return max(int(converged[0]), 1)
+
+
+def _chebyshev_coefficients(omega: np.ndarray, tolerance: float) -> np.ndarray:
+    """(L, N) complex B_l = eps_l j^l J_l(omega_n), L = _series_order(max |omega|, tolerance)."""
+    from scipy.special import jv
+
+    l = np.arange(_series_order(float(np.abs(omega).max()), tolerance))[:, None]
+    # J_l(-w) = (-1)^l J_l(w): evaluate at |w| and restore the sign.
+    bessel = jv(l, np.abs(omega)[None, :]) * np.where(omega[None, :] < 0, (-1.0) ** l, 1.0)
+    return np.where(l == 0, 1.0, 2.0) * (1j**l) * bessel
+
+
+def _uniform_step(freqs: np.ndarray) -> float:
+    step = (freqs[-1] - freqs[0]) / (len(freqs) - 1) if len(freqs) > 1 else 0.0
+    if not np.allclose(np.diff(freqs), step, rtol=1e-9, atol=0):
+        raise ValueError(f"freqs: the chebyshev echo needs uniformly spaced frequencies, got {freqs!r}")
+    return step
+
+
+def _kernel_rows(points, normals, weights, offsets) -> np.ndarray:
+    """The kernel's (8, K) point rows or (13, K) facet rows (see _chebyshev_echo)."""
+    # A complex weight enters as its modulus and a phase in cycles (0 for a real weight: x + 0.0
+    # is x, so real weights give the bytes they gave before phases existed).
+    rows = [points.T, normals.T, np.abs(weights)[None, :]]
+    if offsets is not None:
+        rows += [offsets[:, 0].T, offsets[:, 1].T]
+    else:
+        rows.append((np.angle(weights) / (2 * np.pi))[None, :])
+    return np.ascontiguousarray(np.concatenate(rows))
+
+
+def _series_echo(rows, reach, positions, first, last, freqs, radar):
+    """(M, N) complex128: antenna m's echo of the kernel rows first[m]:last[m]; None where the series would
+    need more terms than there are frequency samples (then the direct sum is faster).
+
+    reach : how far (mm) a corner's range can lie from its facet centre's (0 for points).
+    """
+    n = len(freqs)
+    df = _uniform_step(freqs)
+    positions = np.ascontiguousarray(positions)
+    low, high = np.empty(len(positions)), np.empty(len(positions))
+    _range_bounds(rows, positions, first, last, low, high)
+    centre = (low + high) / 2
+    half = max(float(np.max(high - low)) / 2 + reach, 1e-6)  # mm; a floor for a single range
+    tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
+    cycles_per_mm = df * tau_per_mm
+    n_centre = (n - 1) / 2
+    coef = _chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre),
+                                   CHEBYSHEV_TOLERANCE)
+    if len(coef) > n:
+        warnings.warn(f"chebyshev echo: a range span of {2 * half:.0f} mm needs {len(coef)} series terms for "
+                      f"{n} frequency samples; using the direct sum", stacklevel=4)
+        return None
+    p, kappa = _pattern(radar)
+    p_int = int(p) if float(p).is_integer() and p < 16 else -1
+    wavenumbers = _wavenumbers(freqs)
+    reflectivity = _reflectivity_factor(freqs, radar)
+    facets = rows.shape[0] == 13
+    factor = reflectivity / wavenumbers**2 if facets else reflectivity
+    flag_limit = 2.0 / (CORNER_GAIN_LIMIT * float(wavenumbers.min()) ** 2)
+    out = np.empty((len(positions), n), dtype=np.complex128)
+    _chebyshev_echo(rows, positions, first, last, centre, 1.0 / half, tau_per_mm, freqs[0] + df * n_centre,
+                    0.5 * radar.slope_hz_per_s if radar.rvp else 0.0, float(p), p_int, float(kappa), flag_limit,
+                    np.ascontiguousarray(coef.real), np.ascontiguousarray(coef.imag), cycles_per_mm, n_centre,
+                    freqs, wavenumbers, factor, reflectivity, out.view(np.float64))
+    return out
+
+
+def _reach(offsets) -> float:
+    return 0.0 if offsets is None else float(np.linalg.norm(offsets, axis=2).max())
+
+
+def _echo_chebyshev(points, normals, weights, offsets, positions, freqs, radar):
+    """The per-pair series echo; the direct sum (with a warning naming the range span) where the series would
+    need more terms than there are frequency samples."""
+    if _NUMBA_MISSING:
+        raise MeshsarError(_NUMBA_MISSING)
+    first, last = np.zeros(len(positions), dtype=np.int64), np.full(len(positions), len(points), dtype=np.int64)
+    out = _series_echo(_kernel_rows(points, normals, weights, offsets), _reach(offsets), positions, first, last,
+                       freqs, radar)
+    return _echo_direct(points, normals, weights, offsets, positions, freqs, radar) if out is None else out
