@@ -1,11 +1,5 @@
-"""The factorised echo (radar.echo, "factorised"): against the direct sum and the per-pair series, on shapes
-of its own and on apertures it has not met, and its bytes under thread settings."""
-
-import hashlib
-import os
-import subprocess
-import sys
-from pathlib import Path
+"""The factorised echo (radar.factorised): against the direct sum and the per-pair series, on shapes of its
+own and on apertures it has not met (its bytes under thread settings: test_radar.py)."""
 
 import numpy as np
 import pytest
@@ -115,28 +109,6 @@ def test_clusters_partition_the_items():
     for centre, members, node_x, node_y in clusters:  # a cluster's grid spans the aperture, inside it
         assert node_x[0] == grid.x_mm[0] and node_x[-1] == grid.x_mm[-1] and len(node_x) < len(grid.x_mm)
         assert np.linalg.norm(tri[members].reshape(-1, 3) - centre, axis=1).max() <= RF.FACTORISED_CELL_MM * 3**0.5
-
-
-def test_factorised_echo_bytes_do_not_depend_on_thread_settings():
-    """BLAS (the interpolation's matrix products), OpenMP and numba thread counts of 1 and 2: the same bytes."""
-    script = (
-        "import hashlib, numpy as np, trimesh\n"
-        "import meshsar_builder.radar.echo as RE, meshsar_builder.radar.params as RP\n"
-        "radar = RP.RadarParams(n_samples=16)\n"
-        "mesh = trimesh.creation.icosphere(3, radius=50.0)\n"
-        "out = RE.echo(mesh.triangles, np.ones(len(mesh.faces)), RP.aperture(radar, 'left'), RP.frequencies(radar),\n"
-        "              radar)\n"
-        "print(hashlib.sha256(out.tobytes()).hexdigest())\n"
-    )
-    digests = set()
-    for threads in ("1", "2"):
-        env = {**os.environ, **{name: threads for name in (
-            "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}}
-        run = subprocess.run([sys.executable, "-c", script], env=env, cwd=Path(__file__).parents[1],
-                             capture_output=True, text=True, check=True)
-        digests.add(run.stdout.strip())
-    assert len(digests) == 1
-    assert hashlib.sha256(b"").hexdigest() not in digests
 
 
 def test_aperture_positions_are_the_grid():

@@ -220,7 +220,11 @@ def test_chebyshev_echo_is_deterministic_under_threads():
     assert all(result == first for result in results)
 
 
-def test_chebyshev_echo_bytes_do_not_depend_on_thread_settings():
+@pytest.mark.parametrize("aperture, level, antennas", [
+    ((6, 5), 2, "RP.aperture_positions(radar, 'left')"),  # the per-pair series
+    ((80, 80), 3, "RP.aperture(radar, 'left')"),  # factorised: its interpolation's BLAS products too
+])
+def test_echo_bytes_do_not_depend_on_thread_settings(aperture, level, antennas):
     """BLAS, OpenMP and numba thread counts of 1 and 2 give the same echo bytes."""
     import os
     import subprocess
@@ -230,10 +234,9 @@ def test_chebyshev_echo_bytes_do_not_depend_on_thread_settings():
     script = (
         "import hashlib, numpy as np, trimesh\n"
         "import meshsar_builder.radar.echo as RE, meshsar_builder.radar.params as RP\n"
-        "radar = RP.RadarParams(aperture=(6, 5), n_samples=16)\n"
-        "mesh = trimesh.creation.icosphere(2, radius=50.0)\n"
-        "out = RE.echo(mesh.triangles, np.ones(len(mesh.faces)), RP.aperture_positions(radar, 'left'),\n"
-        "             RP.frequencies(radar), radar)\n"
+        f"radar = RP.RadarParams(aperture={aperture}, n_samples=16)\n"
+        f"mesh = trimesh.creation.icosphere({level}, radius=50.0)\n"
+        f"out = RE.echo(mesh.triangles, np.ones(len(mesh.faces)), {antennas}, RP.frequencies(radar), radar)\n"
         "print(hashlib.sha256(out.tobytes()).hexdigest())\n"
     )
     digests = set()
@@ -363,7 +366,7 @@ def test_chebyshev_echo_matches_direct_on_a_phantom_heart(tmp_path):
     surf = labels_to_surface(*read_label_map(path, MMWHS_TABLE), ["lv", "myo", "rv", "la", "ra", "aorta", "pa"],
                              MeshingParams(spacing_mm=2.0))
     verts = surf.verts - (surf.verts.min(axis=0) + surf.verts.max(axis=0)) / 2
-    radar = RP.RadarParams(aperture=(16, 16), step_mm=10.0)
+    radar = RP.RadarParams(aperture=(8, 8), step_mm=20.0)  # the 160 mm aperture, 64 antennas: the direct sum's cost
     vis, _ = RV.visibility(verts, surf.faces, RP.probe_points(radar, "anterior"))
     seen = vis > 0
     args = (verts[surf.faces][seen], vis[seen], RP.aperture_positions(radar, "anterior"), RP.frequencies(radar), radar)
