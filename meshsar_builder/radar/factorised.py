@@ -29,7 +29,7 @@ from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, Aperture
 #
 # The items are grouped in cubes of FACTORISED_CELL_MM; a cube whose grid would not be
 # FACTORISED_GAIN times smaller than the aperture is summed on the aperture itself (small
-# apertures). All the series sums run in one kernel call.
+# apertures). The series sums run in one kernel call per kind (facets, point scatterers).
 #
 # Where a facet turns away within the aperture (cos theta = 0 on a line across it) r_c has
 # a kink that no smooth interpolant follows: that, not the tolerance, sets the error

@@ -115,16 +115,16 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         vis, rays = visibility(verts, faces, probe_points(radar, view), intersector)
         t1 = time.perf_counter()
         seen = vis > 0
-        positions = aperture(radar, view)  # the grid, which the numba echo factorises on
+        grid = aperture(radar, view)  # the numba echo factorises on the grid
         lit = seen_by(*diffuse, vis) if diffuse is not None else None
-        signal = view_echo(tri[seen], vis[seen], positions, freqs, radar, points=points[seen],
+        signal = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen],
                            diffuse=None if lit is None else (*lit, lambert(radar)))
         t_diffuse = time.perf_counter()
         diffuse_power, n_scatterers = None, 0
         if lit is not None:  # the diffuse part's own power, where the shards keep the echo
             n_scatterers = len(lit[2])
             ix, iy, kept_freqs = grid_indices(radar, radar.echo_decimation)
-            on_grid = positions.positions.reshape(*radar.aperture, 3)[np.ix_(ix, iy)].reshape(-1, 3)
+            on_grid = grid.positions.reshape(*radar.aperture, 3)[np.ix_(ix, iy)].reshape(-1, 3)
             diffuse_echo = view_point_echo(*lit, on_grid, freqs, lambert(radar))[:, kept_freqs]
             diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
         signal = signal.reshape(shape)
