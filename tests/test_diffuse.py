@@ -137,6 +137,24 @@ def test_render_adds_the_diffuse_echo_and_off_gives_the_specular_bytes():
     got = on["echo_clean"][0].reshape(diffuse.shape) - off["echo_clean"][0].reshape(diffuse.shape)
     assert np.linalg.norm(got - diffuse) / np.linalg.norm(diffuse) <= 1e-5
     assert on["views"][0]["visible_scatterers"] == lit.sum() > 0
+    # its own power where the shards keep the echo: here the full grid
+    np.testing.assert_allclose(on["views"][0]["diffuse_power"], np.mean(np.abs(diffuse) ** 2), rtol=1e-6)
+
+
+def test_diffuse_power_is_the_diffuse_echo_on_the_stored_echo_grid():
+    verts = trimesh.creation.icosphere(2, radius=40.0).vertices
+    faces = trimesh.creation.icosphere(2, radius=40.0).faces
+    radar = RP.RadarParams(aperture=(12, 10), step_mm=10.0, n_samples=24, echo_decimation=(3, 2, 4),
+                           loss_decimation=(1, 1, 1), image_snr_db=math.inf, views=("superior",))
+    on = RR.render_sample(verts, faces, radar, ImageParams(size=16), np.random.default_rng(2))
+    s = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(2).spawn(1)[0])
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "superior"))
+    lit = RD.seen_by(*RD.place(verts, faces, s, radar), s.face, vis)
+    full = RE.point_echo(*lit, RP.aperture_positions(radar, "superior"), RP.frequencies(radar), RD.lambert(radar),
+                         method="direct").reshape(12, 10, 24)
+    kept = full[np.ix_(*RP.grid_indices(radar, radar.echo_decimation))]
+    assert kept.size == 4 * 5 * 6
+    np.testing.assert_allclose(on["views"][0]["diffuse_power"], np.mean(np.abs(kept) ** 2), rtol=1e-6)
 
 
 # ------------------------------------------------------------------ speckle statistics

@@ -87,8 +87,7 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
         t_both, _ = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar,
                                           diffuse=(*lit, RD.lambert(radar))))
         # and its power on the stored echo grid, summed on its own (render_sample's diffuse_power)
-        ix, iy, kept = RP.grid_indices(radar, radar.echo_decimation)
-        on_grid = positions.positions.reshape(*radar.aperture, 3)[np.ix_(ix, iy)].reshape(-1, 3)
+        on_grid = RP.sub_aperture(radar, view, radar.echo_decimation)
         t_power, _ = _best(lambda: RE.point_echo(*lit, on_grid, freqs, RD.lambert(radar)))
         t_diffuse = max(t_both - t_echo, 0.0) + t_power
     signal = signal.reshape(*radar.aperture, radar.n_samples)

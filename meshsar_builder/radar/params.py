@@ -254,13 +254,15 @@ def grid_indices(radar: RadarParams, decimation: tuple[int, ...]) -> tuple[np.nd
     return tuple(decimation_indices(size, factor) for size, factor in zip(sizes, decimation))
 
 
+def sub_aperture(radar: RadarParams, view: str, decimation: tuple[int, ...]) -> Aperture:
+    """The antennas of a view's aperture that decimation (ax, ay, af) keeps, as an Aperture."""
+    (ix, iy, _), (x_mm, y_mm) = grid_indices(radar, decimation), aperture_axes(radar)
+    return Aperture(view_frame(view), radar.z0_mm, x_mm[ix], y_mm[iy])
+
+
 def _sub_grid(radar: RadarParams, decimation: tuple[int, ...]) -> dict:
-    (nx, ny), (ix, iy, i_f) = radar.aperture, grid_indices(radar, decimation)
-    positions = {
-        view: aperture_positions(radar, view).reshape(nx, ny, 3)[np.ix_(ix, iy)].reshape(-1, 3)
-        for view in radar.views
-    }
-    return {"frequencies_hz": frequencies(radar)[i_f], "positions_mm": positions}
+    positions = {view: sub_aperture(radar, view, decimation).positions for view in radar.views}
+    return {"frequencies_hz": frequencies(radar)[grid_indices(radar, decimation)[2]], "positions_mm": positions}
 
 
 def echo_grid(radar: RadarParams) -> dict:

@@ -19,6 +19,7 @@ from meshsar_builder.radar.params import (
     frequencies,
     grid_indices,
     probe_points,
+    sub_aperture,
 )
 from meshsar_builder.radar.visibility import embree_intersector, facet_geometry, scatterer_points, visibility
 
@@ -104,7 +105,8 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     intersector = embree_intersector(verts, faces)
     freqs = frequencies(radar)
     x_mm, y_mm = aperture_axes(radar)
-    keep = np.ix_(*grid_indices(radar, radar.echo_decimation))
+    echo_indices = grid_indices(radar, radar.echo_decimation)  # (x, y, frequency) kept
+    keep = np.ix_(*echo_indices)
     keep_loss = np.ix_(*grid_indices(radar, radar.loss_decimation))
     shape = (*radar.aperture, radar.n_samples)
     noisy = radar.snr_db != math.inf and radar.image_snr_db != math.inf
@@ -123,9 +125,8 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         diffuse_power, n_scatterers = None, 0
         if lit is not None:  # the diffuse part's own power, where the shards keep the echo
             n_scatterers = len(lit[2])
-            ix, iy, kept_freqs = grid_indices(radar, radar.echo_decimation)
-            on_grid = grid.positions.reshape(*radar.aperture, 3)[np.ix_(ix, iy)].reshape(-1, 3)
-            diffuse_echo = view_point_echo(*lit, on_grid, freqs, lambert(radar))[:, kept_freqs]
+            on_grid = sub_aperture(radar, view, radar.echo_decimation)
+            diffuse_echo = view_point_echo(*lit, on_grid, freqs, lambert(radar))[:, echo_indices[2]]
             diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
         signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
