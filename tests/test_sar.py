@@ -122,7 +122,8 @@ def test_range_slices_cover_the_field_of_view():
 
 
 @pytest.mark.parametrize("field, value", [("size", 0), ("fov_mm", -1.0), ("channels", ("colour",)),
-                                          ("window", "hamming"), ("channels", ("depth", "depth"))])
+                                          ("window", "hamming"), ("channels", ("depth", "depth")),
+                                          ("depth_looks_mm", -1.0), ("depth_looks_mm", float("inf"))])
 def test_bad_image_parameters_name_the_field(field, value):
     with pytest.raises(ValueError, match=f"{field}:"):
         S.ImageParams(**{field: value})
@@ -134,3 +135,26 @@ def test_channels_come_in_the_asked_order():
                          S.ImageParams(channels=("depth", "intensity")))
     assert both.shape == (2, 128, 128)
     assert both[1].max() == 1.0 and both[0].max() < 1.0
+
+
+def test_multilook_depth_is_the_power_weighted_mean_of_its_neighbours():
+    """Against a loop over every pixel's neighbours with Gaussian weights (scipy's 4-sigma radius)."""
+    rng = np.random.default_rng(3)
+    distance = rng.uniform(250, 350, (12, 9))
+    power = rng.exponential(size=(12, 9)) * (rng.random((12, 9)) < 0.7)  # 0: not detected
+    sigma = 1.3
+    radius = int(4 * sigma + 0.5)
+    expected = distance.copy()
+    for r in range(12):
+        for c in range(9):
+            num = den = 0.0
+            for rr in range(max(r - radius, 0), min(r + radius + 1, 12)):
+                for cc in range(max(c - radius, 0), min(c + radius + 1, 9)):
+                    g = np.exp(-((rr - r) ** 2 + (cc - c) ** 2) / (2 * sigma**2))
+                    num += g * power[rr, cc] * distance[rr, cc]
+                    den += g * power[rr, cc]
+            if den > 0:
+                expected[r, c] = num / den
+    assert np.allclose(S.multilook_depth(distance, power, sigma), expected, rtol=0, atol=1e-9)
+    alone = np.zeros_like(power)
+    assert np.array_equal(S.multilook_depth(distance, alone, sigma), distance)  # nothing detected: unchanged

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 from scipy.fft import next_fast_len
+from scipy.ndimage import gaussian_filter
 
 from meshsar_builder.radar.jit import KERNEL_OPTIONS, njit
 
@@ -53,6 +54,7 @@ class ImageParams:
     channels: tuple[str, ...] = ("intensity", "depth")
     window: str = "hann"
     dynamic_range_db: float = 40.0
+    depth_looks_mm: float = 3.0
 
     def __post_init__(self):
         if isinstance(self.size, bool) or not isinstance(self.size, int) or self.size < 2:
@@ -68,6 +70,10 @@ class ImageParams:
         object.__setattr__(self, "channels", channels)
         if self.window not in WINDOWS:
             raise invalid("window", f"must be one of {', '.join(WINDOWS)}", self.window)
+        looks = self.depth_looks_mm
+        if isinstance(looks, bool) or not isinstance(looks, (int, float)) or not 0 <= looks < math.inf:
+            raise invalid("depth_looks_mm", "must be >= 0 and finite (0: each pixel's own peak)", looks)
+        object.__setattr__(self, "depth_looks_mm", float(looks))
 
 
 def image_metadata(images: ImageParams) -> dict:
@@ -202,6 +208,18 @@ def peak_range(magnitude: np.ndarray, d_mm: np.ndarray) -> tuple[np.ndarray, np.
     return peak, d_mm[best] + offset * step
 
 
+def multilook_depth(distance: np.ndarray, power: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Power-weighted Gaussian mean (H, W) of per-pixel peak distances (H, W) over neighbours.
+
+    power : (H, W) float, each pixel's peak power, 0 where nothing is detected (those pixels
+    get no weight); sigma_px : the Gaussian's std in pixels. Where no detected pixel is
+    near, the pixel's own distance is kept.
+    """
+    weight = gaussian_filter(power, sigma_px, mode="constant")
+    looked = gaussian_filter(power * distance, sigma_px, mode="constant")
+    return np.divide(looked, weight, out=np.array(distance, dtype=np.float64), where=weight > 0)
+
+
 def view_volume(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, z0_mm: float,
                 images: ImageParams) -> np.ndarray:
     """Complex reflectivity (S, H, W) complex64 of a view on the DESIGN image grid and its range slices.
@@ -232,6 +250,9 @@ def volume_images(volume: np.ndarray, freqs: np.ndarray, z0_mm: float, images: I
     else:
         intensity = np.zeros_like(peak)
     detected = (intensity >= DEPTH_INTENSITY_FLOOR) & (peak >= noise_rms * 10 ** (DETECTION_MARGIN_DB / 20))
+    if images.depth_looks_mm > 0:
+        distance = multilook_depth(distance, np.where(detected, peak**2, 0.0),
+                                   images.depth_looks_mm * images.size / images.fov_mm)
     depth = np.where(detected, (z0_mm - distance) / (images.fov_mm / 2), 0.0)
     channels = {"intensity": intensity, "depth": depth}
     return np.stack([channels[name] for name in images.channels]).astype(np.float32)
