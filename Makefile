@@ -14,7 +14,7 @@ TEST_WORKERS ?= logical
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: install dataset test test-fast clean splits verify bench train ablate
+.PHONY: install dataset test test-fast clean splits verify bench train ablate ablate-radar
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -62,3 +62,7 @@ ABLATE_EPOCHS ?=
 # The radar-loss / pooling / view ablation over seeds on OUT (meshsar ablate); ABLATE_EPOCHS shortens every run.
 ablate: $(STAMP)
 	$(VENV)/bin/meshsar ablate $(CONFIG) --data $(OUT) --split seed-$(SEED) --seeds $(SEEDS) $(if $(ABLATE_EPOCHS),--epochs $(ABLATE_EPOCHS))
+
+# The radar loss on against off (meshsar ablate --radar): weight chosen on validation, 5 seeds, paired test.
+ablate-radar: $(STAMP)
+	$(VENV)/bin/meshsar ablate $(CONFIG) --data $(OUT) --split seed-$(SEED) --radar $(if $(ABLATE_EPOCHS),--epochs $(ABLATE_EPOCHS))

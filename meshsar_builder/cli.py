@@ -104,15 +104,26 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from meshsar_builder.trainer.ablate import VARIANTS, ablate, markdown
+    from meshsar_builder.trainer.ablate import (RADAR_SEEDS, RADAR_WEIGHTS, VARIANTS, ablate, markdown,
+                                                radar_ablation, radar_markdown)
 
     try:
-        seeds = tuple(int(s) for s in args.seeds.split(","))
+        seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else (RADAR_SEEDS if args.radar
+                                                                                 else (0, 1, 2))
     except ValueError:
         print(f"error: --seeds: expected comma-separated integers, got {args.seeds!r}", file=sys.stderr)
         return 2
-    variants = tuple(args.variants.split(",")) if args.variants else VARIANTS
+    try:
+        weights = tuple(float(w) for w in args.radar_weights.split(",")) if args.radar_weights else RADAR_WEIGHTS
+    except ValueError:
+        print(f"error: --radar-weights: expected comma-separated numbers, got {args.radar_weights!r}", file=sys.stderr)
+        return 2
     refuse_if_locked(args.data)
+    if args.radar:
+        print(radar_markdown(radar_ablation(args.config, args.data, args.split, seeds, weights, args.epochs,
+                                            args.device, args.out, args.samples)))
+        return 0
+    variants = tuple(args.variants.split(",")) if args.variants else VARIANTS
     print(markdown(ablate(args.config, args.data, args.split, seeds, variants, args.epochs, args.device, args.out,
                           args.samples)))
     return 0
@@ -209,7 +220,10 @@ def parser() -> argparse.ArgumentParser:
     ab.add_argument("config", help="trainer config TOML, e.g. manifests/train/default.toml")
     ab.add_argument("--data", required=True, help="built dataset folder")
     ab.add_argument("--split", default="seed-0")
-    ab.add_argument("--seeds", default="0,1,2", help="comma-separated trainer seeds (default 0,1,2)")
+    ab.add_argument("--seeds", help="comma-separated trainer seeds (default 0,1,2; with --radar 0,1,2,3,4)")
+    ab.add_argument("--radar", action="store_true",
+                    help="radar loss on against off: the weight chosen on validation, a paired test on test samples")
+    ab.add_argument("--radar-weights", help="with --radar: comma-separated weights to choose from (default 0.03,0.1,0.3)")
     ab.add_argument("--variants", help="comma-separated subset of default,no_radar,max_only,single_view (default all)")
     ab.add_argument("--epochs", type=int, help="shorten every run to this many epochs (warm-up, ramp and "
                                                "intervals scale with it; default: the config's)")

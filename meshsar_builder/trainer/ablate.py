@@ -18,16 +18,22 @@ Writes OUT/ablations/<config name>-<split>[-e<epochs>]/:
     ablation.json        per variant and seed the run's test means; per variant the
                          mean ± std over seeds; the template and mean-shape baselines
     ablation.md          the same as a table
+
+`meshsar ablate CONFIG --data OUT --radar` (radar_ablation) is the radar loss's own test:
+the radar weight chosen on the validation part, then radar on against off over more seeds,
+compared sample by sample on the test part with a paired test.
 """
 
 from __future__ import annotations
 
 import copy
+import csv
 import os
 from pathlib import Path
 
 import numpy as np
 import tomli_w
+from scipy import stats
 
 from meshsar_builder.dataset.shards import read_index
 from meshsar_builder.pipeline.errors import InputError
@@ -39,6 +45,10 @@ from meshsar_builder.trainer.metrics import COLUMNS
 from meshsar_builder.trainer.train import read_log, train
 
 VARIANTS = ("default", "no_radar", "max_only", "single_view")
+RADAR_WEIGHTS = (0.03, 0.1, 0.3)
+RADAR_SEEDS = (0, 1, 2, 3, 4)
+# The paired test's metrics: the paper's table (Dice, ASSD, HD, ANE and the normalised distances).
+PAIRED_COLUMNS = ("dice", "assd_mm", "hd_mm", "ane_rad", "assd_norm", "hd_norm")
 TABLE_COLUMNS = ("dice", "assd_mm", "hd_mm", "hd95_mm", "ane_rad")  # the table's subset of COLUMNS
 
 
@@ -130,4 +140,118 @@ def markdown(result: dict) -> str:
         lines.append(f"| {variant} | " + " | ".join(cells) + f" | {stats['train_seconds'][0]:.0f} |")
     for name, means in result["baselines"].items():
         lines.append(f"| {name} | " + " | ".join(f"{means[c]:.4g}" for c in TABLE_COLUMNS) + " | – |")
+    return "\n".join(lines) + "\n"
+
+
+def _run(base: dict, name: str, seed: int, first_view: str, epochs: int | None, folder: Path, data: Path,
+         split: str, device: str | None, progress: bool, radar_weight: float) -> Path:
+    """Train (or resume) one run of `base` with this seed and radar weight; its folder."""
+    table = variant_table(base, "default", seed, first_view, epochs)
+    table["name"] = f"{base['name']}-{name}"
+    table.setdefault("radar_loss", {})["weight"] = radar_weight
+    run = folder / f"{name}-seed-{seed}"
+    train(parse_config(tomli_w.dumps(table), str(run / "config.toml")), data, split, run, progress=progress,
+          device=device)
+    return run
+
+
+def _test_rows(run: Path, data: Path, split: str, device: str | None, samples: int, progress: bool) -> dict:
+    """sample id -> the run's test metrics (float per COLUMNS) from its best validation checkpoint."""
+    table = run / f"eval-{split}" / "metrics.csv"
+    if not table.exists():
+        evaluate(run, data, split, renders=0, device=device or "cpu", samples=samples, progress=progress,
+                 baselines=False)
+    with open(table, newline="", encoding="utf-8") as f:
+        return {row["sample_id"]: {c: float(row[c]) for c in COLUMNS} for row in csv.DictReader(f)
+                if row["method"] not in BASELINES}
+
+
+def radar_ablation(config: str | os.PathLike, data: str | os.PathLike, split: str = "seed-0",
+                   seeds: tuple[int, ...] = RADAR_SEEDS, weights: tuple[float, ...] = RADAR_WEIGHTS,
+                   epochs: int | None = None, device: str | None = None, out: str | os.PathLike | None = None,
+                   samples: int = 20_000, progress: bool = True) -> dict:
+    """Radar loss on against off: the weight chosen on validation, then a paired test on the test part.
+
+    1. One run per radar weight in `weights` at the first seed; the weight whose run reached
+       the lowest validation ASSD is chosen (the test part is never looked at).
+    2. Arms `radar` (that weight) and `no_radar` (weight 0), one run per seed each, at the
+       config's own schedule (warm-up and ramp; `epochs` scales them as in ablate).
+    3. Each test sample's metrics are averaged over the seeds per arm, and the arms compared
+       by a two-sided Wilcoxon signed-rank test over test samples, per metric in
+       PAIRED_COLUMNS. The seeds' spread is given beside it (mean ± std of the per-seed means).
+
+    Writes OUT/ablations/radar-<config name>-<split>[-e<epochs>]/ (resumable like ablate):
+    radar_ablation.json (keys: `weights` (weight -> validation ASSD), `chosen_weight`,
+    `arms` (arm -> per seed, the metrics' test means), `spread` (arm -> metric -> [mean, std]),
+    `paired` (metric -> p), `paired_detail` (metric -> n, median difference radar - no_radar,
+    the better arm)) and radar_ablation.md.
+    """
+    if not weights or any(not w > 0 for w in weights):
+        raise InputError(f"radar weights: need positive values, got {list(weights)}")
+    if len(seeds) < 2:
+        raise InputError(f"seeds: a paired comparison over seeds needs at least 2, got {list(seeds)}")
+    text = read_text(config, "trainer config")
+    parse_config(text, str(config))  # errors name the file before anything trains
+    base = tomllib.loads(text)
+    data = Path(data)
+    first_view = read_index(data)["views"][0]["name"]
+    folder = Path(out) if out is not None else (
+        data / "ablations" / f"radar-{base['name']}-{split}{'' if epochs is None else f'-e{epochs}'}")
+    options = {"first_view": first_view, "epochs": epochs, "folder": folder, "data": data, "split": split,
+               "device": device, "progress": progress}
+    validation = {}
+    for weight in weights:
+        run = _run(base, f"radar-w{weight:g}", seeds[0], radar_weight=weight, **options)
+        values = [row["val_assd_mm"] for row in read_log(run / "log.csv") if row.get("val_assd_mm") is not None]
+        if not values:
+            raise InputError(f"{run}: no validation ASSD in its log; the radar weight is chosen on validation "
+                             "([data] val_fraction > 0)")
+        validation[f"{weight:g}"] = float(min(values))
+    chosen = float(min(validation, key=validation.get))
+    arms = {"radar": f"radar-w{chosen:g}", "no_radar": "no_radar"}
+    per_seed: dict[str, list[dict]] = {arm: [] for arm in arms}
+    per_sample: dict[str, list[dict]] = {arm: [] for arm in arms}
+    for seed in seeds:
+        for arm, name in arms.items():
+            run = _run(base, name, seed, radar_weight=chosen if arm == "radar" else 0.0, **options)
+            rows = _test_rows(run, data, split, device, samples, progress)
+            per_sample[arm].append(rows)
+            per_seed[arm].append({"seed": seed, **{c: float(np.mean([r[c] for r in rows.values()])) for c in COLUMNS}})
+    ids = sorted(per_sample["radar"][0])
+    paired, detail = {}, {}
+    for column in PAIRED_COLUMNS:
+        # Each test sample's metric averaged over the seeds: the sample is the unit.
+        radar, off = ([np.mean([seed_rows[i][column] for seed_rows in per_sample[arm]]) for i in ids] for arm in arms)
+        difference = np.subtract(radar, off)
+        p = float(stats.wilcoxon(radar, off).pvalue) if np.any(difference != 0) else 1.0
+        paired[column] = p
+        median = float(np.median(difference))
+        better = "tie" if median == 0 else ("radar" if (median > 0) == (column in HIGHER_IS_BETTER) else "no_radar")
+        detail[column] = {"n": len(ids), "median_difference": median, "better": better}
+    result = {
+        "config": str(config), "data": str(data), "split": split, "seeds": list(seeds), "epochs": epochs,
+        "weights": validation, "chosen_weight": chosen, "arms": per_seed,
+        "spread": {arm: {c: [float(np.mean([r[c] for r in rows])), float(np.std([r[c] for r in rows]))]
+                         for c in COLUMNS} for arm, rows in per_seed.items()},
+        "paired": paired, "paired_detail": detail,
+    }
+    write_json(folder / "radar_ablation.json", result)
+    write_bytes(folder / "radar_ablation.md", radar_markdown(result).encode())
+    return result
+
+
+def radar_markdown(result: dict) -> str:
+    """Per arm mean ± std over seeds, then the paired test per metric."""
+    lines = [f"# Radar loss on against off: {result['config']} on {result['data']} ({result['split']}, test; "
+             f"seeds {', '.join(map(str, result['seeds']))}; {result['epochs'] or 'config'} epochs)", "",
+             "Radar weight chosen on validation (lowest ASSD): "
+             + ", ".join(f"{w}: {a:.3f} mm" for w, a in result["weights"].items())
+             + f" -> **{result['chosen_weight']:g}**.", "",
+             "| metric | radar | no radar | Wilcoxon p (test samples, seed means) | better |", "|---|---|---|---|---|"]
+    for column in PAIRED_COLUMNS:
+        arms = [result["spread"][arm][column] for arm in ("radar", "no_radar")]
+        detail = result["paired_detail"][column]
+        lines.append(f"| {column} {'↑' if column in HIGHER_IS_BETTER else '↓'} | "
+                     + " | ".join(f"{m:.4g} ± {s:.2g}" for m, s in arms)
+                     + f" | {result['paired'][column]:.3g} (n = {detail['n']}) | {detail['better']} |")
     return "\n".join(lines) + "\n"

@@ -1,0 +1,101 @@
+"""`meshsar ablate --radar`: the weight is chosen on validation, the arms differ only in the radar
+weight, and the paired test is a Wilcoxon signed-rank over test samples of the seed means."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+pytestmark = pytest.mark.slow  # five tiny trainings and evaluations: ~30 s of CPU
+
+from scipy import stats  # noqa: E402
+
+from meshsar_builder.pipeline.errors import InputError  # noqa: E402
+from meshsar_builder.trainer.ablate import PAIRED_COLUMNS, radar_ablation  # noqa: E402
+from meshsar_builder.trainer.config import load_config  # noqa: E402
+from meshsar_builder.trainer.train import read_log  # noqa: E402
+
+from .test_train import TINY_CONFIG, make_dataset  # noqa: E402
+
+SEEDS, WEIGHTS = (0, 1), (0.03, 0.3)
+
+
+@pytest.fixture(scope="module")
+def ablation(tmp_path_factory):
+    root = tmp_path_factory.mktemp("radar_ablate")
+    data = make_dataset(root / "data")
+    config = root / "tiny.toml"
+    config.write_text(TINY_CONFIG.replace("epochs = 2", "epochs = 4"))
+    result = radar_ablation(config, data, seeds=SEEDS, weights=WEIGHTS, epochs=2, samples=2000, progress=False)
+    return data, config, data / "ablations" / "radar-tiny-seed-0-e2", result
+
+
+def test_the_weight_is_chosen_on_validation_and_the_arms_differ_only_in_it(ablation):
+    data, _, folder, result = ablation
+    best = {w: min(row["val_assd_mm"] for row in read_log(folder / f"radar-w{w:g}-seed-0" / "log.csv")
+                   if row["val_assd_mm"] is not None) for w in WEIGHTS}
+    assert result["weights"] == {f"{w:g}": pytest.approx(v) for w, v in best.items()}
+    chosen = min(best, key=best.get)
+    assert result["chosen_weight"] == chosen
+    for seed in SEEDS:
+        on = load_config(folder / f"radar-w{chosen:g}-seed-{seed}" / "config.toml").as_dict()
+        off = load_config(folder / f"no_radar-seed-{seed}" / "config.toml").as_dict()
+        assert on["seed"] == off["seed"] == seed
+        assert on["radar_loss"]["weight"] == chosen and off["radar_loss"]["weight"] == 0
+        assert {k for k in on if on[k] != off[k]} == {"name", "radar_loss"}
+        assert {k for k in on["radar_loss"] if on["radar_loss"][k] != off["radar_loss"][k]} == {"weight"}
+
+
+def test_paired_test_is_over_test_samples_of_the_seed_means(ablation):
+    """Recomputed from each run's metrics.csv with plain loops."""
+    _, _, folder, result = ablation
+    chosen = result["chosen_weight"]
+    tables = {}
+    for arm, name in (("radar", f"radar-w{chosen:g}"), ("no_radar", "no_radar")):
+        for seed in SEEDS:
+            with open(folder / f"{name}-seed-{seed}" / "eval-seed-0" / "metrics.csv", newline="") as f:
+                tables[arm, seed] = {row["sample_id"]: row for row in csv.DictReader(f)}
+    ids = sorted(tables["radar", 0])
+    for k, seed in enumerate(SEEDS):
+        for arm in ("radar", "no_radar"):
+            assert result["arms"][arm][k]["seed"] == seed
+            assert result["arms"][arm][k]["dice"] == pytest.approx(
+                np.mean([float(tables[arm, seed][i]["dice"]) for i in ids]))
+    for column in PAIRED_COLUMNS:
+        means = {}
+        for arm in ("radar", "no_radar"):
+            means[arm] = []
+            for i in ids:
+                total = 0.0
+                for seed in SEEDS:
+                    total += float(tables[arm, seed][i][column])
+                means[arm].append(total / len(SEEDS))
+        if means["radar"] == means["no_radar"]:
+            assert result["paired"][column] == 1.0
+        else:
+            assert result["paired"][column] == pytest.approx(stats.wilcoxon(means["radar"], means["no_radar"]).pvalue)
+        assert result["paired_detail"][column]["n"] == len(ids)
+    assert "| assd_mm ↓ |" in (folder / "radar_ablation.md").read_text()
+
+
+def test_a_rerun_resumes_without_training_or_evaluating(ablation, monkeypatch):
+    data, config, folder, result = ablation
+    import meshsar_builder.trainer.ablate as A
+
+    monkeypatch.setattr(A, "evaluate", lambda *a, **k: pytest.fail("evaluated again"))
+    again = radar_ablation(config, data, seeds=SEEDS, weights=WEIGHTS, epochs=2, samples=2000, progress=False)
+    assert again["paired"] == result["paired"] and again["arms"] == result["arms"]
+    log = (folder / "no_radar-seed-1" / "log.csv").read_text().splitlines()
+    assert len(log) == 1 + 2  # not extended
+
+
+@pytest.mark.parametrize("weights, seeds, message", [((0.1, 0.0), (0, 1), "need positive values"),
+                                                     ((0.1,), (0,), "needs at least 2")])
+def test_bad_weights_or_one_seed_are_refused_before_training(ablation, tmp_path, weights, seeds, message):
+    data, config, _, _ = ablation
+    with pytest.raises(InputError, match=message):
+        radar_ablation(config, data, seeds=seeds, weights=weights, out=tmp_path)
+    assert not list(tmp_path.iterdir())
