@@ -104,4 +104,4 @@ def finish(ctx: Context, results: Results) -> None:
 
 
 # Version 7: issue 26 (v6: the fold guard adds the first-order term on folded regions).
-STAGE = Stage(name=NAME, version=8, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=9, plan=plan, run=run, finish=finish, again=again)

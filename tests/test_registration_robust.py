@@ -38,11 +38,29 @@ def test_apex_is_kept_on_an_elongated_ventricle_along_its_axis_and_dropped_on_a_
     marks = label_landmarks(verts, faces, labels)
     assert "apex" in marks.keys and marks.confidence[marks.keys.index("apex")] >= 1
     np.testing.assert_allclose(marks.points(verts)[marks.keys.index("apex")], [0, 0, -45], atol=2.0)  # the mean of a 2 mm band
-    # A round ventricle with the "base" beside it (a biventricular map's rv): no apex, and why.
+    # A round ventricle with the "base" beside it (an atrium): no apex, and why.
     verts, faces, labels = labelled((30.0, 30.0, 30.0))
+    labels[labels == RV] = STRUCTURES["la"]
     marks = label_landmarks(verts, faces, labels)
     assert "apex" not in marks.keys
     assert dict(marks.dropped)["apex"].startswith("ill-defined: ventricle elongation 1.")
+
+
+@pytest.mark.parametrize("turn", [(0, 0, 0), (40, -25, 70)])
+def test_a_short_axis_maps_apex_lies_along_its_basal_lv_disc(turn):
+    """Biventricular (lv, myo, rv only): the lv shows as its basal cut, whose inward normal is the
+    long axis, whatever the RV beside it; the apex is the far end along it."""
+    verts, faces, labels = labelled((25.0, 25.0, 50.0), cut_rv=0.4, cut_lv=0.8)
+    rotation = Rotation.from_euler("xyz", turn, degrees=True).as_matrix()
+    marks = label_landmarks(verts @ rotation.T, faces, labels)
+    assert "apex" in marks.keys and marks.confidence[marks.keys.index("apex")] >= 1
+    np.testing.assert_allclose(marks.points(verts @ rotation.T)[marks.keys.index("apex")],
+                               rotation @ [0, 0, -50], atol=2.0)
+    # A flat ventricle below its disc (0.58 disc radii long): no apex, and why.
+    verts, faces, labels = labelled((40.0, 40.0, 14.0), cut_rv=0.5, cut_lv=0.2)
+    marks = label_landmarks(verts, faces, labels)
+    assert "apex" not in marks.keys
+    assert "ventricle length over disc radius" in dict(marks.dropped)["apex"]
 
 
 def test_a_short_junction_gives_no_ring_and_says_so():
@@ -104,7 +122,7 @@ def test_register_reports_landmarks_and_refuses_a_wild_spline_start():
     subject = (verts * (1.1, 0.9, 1.0)) @ rotation.T + (4.0, 0.0, -2.0)
     fitted, report = register(verts, faces, subject, faces, PARAMS, np.random.default_rng(0), labels, labels)
     accept(report, PARAMS)
-    assert "apex" in report["landmarks_dropped"]  # round ventricle beside its rv
+    assert "apex" in report["landmarks"]  # along the axis of its lv cap, the basal disc
     assert report["landmark_error_mm"] <= report["landmark_start_error_mm"] + PARAMS.landmark_tolerance_mm
     assert set(report["landmark_confidence"]) == set(report["landmarks"])
 

@@ -13,15 +13,20 @@ landmark term needs. From the labels alone, every mesh gets:
   labelled surface if there are none): K points along the ring, so its motion along the
   surface (a base descending along the ventricular walls) is seen, not only its centre's;
 - `apex`: the mean of the ventricular (lv, myo) vertices within `APEX_BAND_MM` of the one
-  farthest from the centroid of the other structures (the base of the heart).
+  farthest from the centroid of the other structures (the base of the heart); on a
+  biventricular (short-axis) map, whose only other structure is the RV beside the LV, the one
+  farthest along the inward normal of the LV's basal disc (the LV's patch on the union
+  surface, the cut at the base).
 Each landmark carries a confidence (how well the labels define it), and one that is ill
 defined is dropped, its reason kept in `Landmarks.dropped` (the fit's report and sidecar):
 - the apex only where the ventricle is elongated (the square root of the ratio of its two
   largest principal moments at least `APEX_MIN_ELONGATION`) and the base-to-apex direction
-  runs along its long axis (|cos| at least `APEX_MIN_ALIGNMENT`): a biventricular map's
-  "base" is the RV beside the LV, not above it, so its farthest point is a lateral wall point
-  that moves with every tessellation; its confidence is the smaller of the two ratios to
-  their thresholds;
+  runs along its long axis (|cos| at least `APEX_MIN_ALIGNMENT`): taken from the RV beside
+  the LV, the farthest point is a lateral wall point that moves with every tessellation; its
+  confidence is the smaller of the two ratios to their thresholds. On a biventricular map,
+  where the disc's normals agree (|sum of area-weighted normals| / area at least
+  `APEX_DISC_COHERENCE`) and the ventricle reaches at least `APEX_MIN_ELONGATION` disc radii
+  below it; the confidence is again the smaller ratio;
 - a junction ring only where the junction is at least `RING_MIN_MM` long (the length of the
   boundary curve through the midpoints of its crossing edges); confidence length / RING_MIN_MM.
 Two meshes share the landmarks whose keys both have, so each pair means the same anatomy.
@@ -42,6 +47,8 @@ VENTRICLE = (STRUCTURES["lv"], STRUCTURES["myo"])
 APEX_BAND_MM = 2.0
 APEX_MIN_ELONGATION = 1.2
 APEX_MIN_ALIGNMENT = 0.7
+APEX_DISC_COHERENCE = 0.5
+BIVENTRICULAR = {STRUCTURES["lv"], STRUCTURES["myo"], STRUCTURES["rv"]}
 RING_MIN_MM = 20.0
 
 
@@ -116,7 +123,24 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
                     add(f"{key}@{j}", chosen.ravel(), np.repeat(weight, 2), length / RING_MIN_MM)
     ventricle = np.isin(labels, VENTRICLE)
     base = (labels != 0) & ~ventricle
-    if ventricle.sum() >= min_vertices and base.sum() >= min_vertices:
+    disc = _basal_disc(verts, faces, labels) if set(present) <= BIVENTRICULAR else None
+    if disc is not None and ventricle.sum() >= min_vertices:
+        # A short-axis map: the LV shows as its basal cut, whose inward normal is the long axis
+        # (within 1-5 deg of the slice normal on 8 real M&Ms maps, where a biventricular
+        # union's principal axis runs 46-84 deg off it, toward the RV).
+        centre, toward_apex, radius, coherence = disc
+        index = np.flatnonzero(ventricle)
+        along = (verts[index] - centre) @ toward_apex
+        band = index[along >= along.max() - APEX_BAND_MM]
+        length = float(along.max()) / radius
+        if coherence < APEX_DISC_COHERENCE or length < APEX_MIN_ELONGATION:
+            dropped.append(("apex", f"ill-defined: basal LV disc normals agree {coherence:.2f} (least "
+                                    f"{APEX_DISC_COHERENCE}), ventricle length over disc radius {length:.2f} "
+                                    f"(least {APEX_MIN_ELONGATION})"))
+        else:
+            add("apex", band, np.ones(len(band)),
+                min(coherence / APEX_DISC_COHERENCE, length / APEX_MIN_ELONGATION))
+    elif ventricle.sum() >= min_vertices and base.sum() >= min_vertices:
         index = np.flatnonzero(ventricle)
         distance = np.linalg.norm(verts[index] - verts[base].mean(axis=0), axis=1)
         band = index[distance >= distance.max() - APEX_BAND_MM]
@@ -163,6 +187,23 @@ def _ring_sectors(verts: np.ndarray, crossing: np.ndarray, labels: np.ndarray, a
         if weight[keep].sum() >= 2.0:
             out.append((j, crossing[keep], weight[keep]))
     return out
+
+
+def _basal_disc(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """The LV's patch on a biventricular union surface, its basal cut: (area-weighted centre (3,),
+    unit inward normal (3,) (toward the apex), radius of a disc of its area (mm), coherence
+    |sum of area-weighted normals| / area (1 for a flat disc)), or None without LV faces."""
+    patch = faces[(labels[faces] == STRUCTURES["lv"]).all(axis=1)]
+    if not len(patch):
+        return None
+    corners = verts[patch]
+    normals = 0.5 * np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # area-weighted
+    areas = np.linalg.norm(normals, axis=1)
+    area, total = float(areas.sum()), normals.sum(axis=0)
+    if not np.linalg.norm(total) > 0:
+        return None
+    centre = (corners.mean(axis=1) * areas[:, None]).sum(axis=0) / area
+    return centre, -total / np.linalg.norm(total), float(np.sqrt(area / np.pi)), float(np.linalg.norm(total) / area)
 
 
 def _apex_shape(points: np.ndarray, weights: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
