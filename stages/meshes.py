@@ -78,4 +78,4 @@ def run(ctx: Context, item: Item) -> dict:
     }
 
 
-STAGE = Stage(name=NAME, version=4, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=5, plan=plan, run=run)

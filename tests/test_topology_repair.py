@@ -16,7 +16,7 @@ from scipy import ndimage
 
 from meshsar_builder.geometry.digital_topology import ball_core, filled_solid
 from meshsar_builder.geometry.label_repair import (
-    JUNCTIONS, clean_labels, correct_handles, fill_junction_walls, genus, separate_contacts)
+    JUNCTIONS, clean_labels, correct_handles, fill_junction_walls, genus, lv_gaps_to_myo, separate_contacts)
 from meshsar_builder.geometry.meshing import MeshingParams, iso_grid, labels_to_surface
 from meshsar_builder.geometry.phantom_defects import DEFECTS, add_defects
 from meshsar_builder.geometry.structures import STRUCTURES
@@ -246,3 +246,34 @@ def test_a_handle_left_is_located(monkeypatch):
     labels = torus(18, 6).astype(np.uint8) * S["lv"]
     with pytest.raises(MeshError, match=r"handles left at \['\[-?\d+\.\d, -?\d+\.\d, -?\d+\.\d\] mm \(lv\)'"):
         labels_to_surface(labels, np.eye(4), ["lv"], MeshingParams(), name="ring")
+
+
+def _capped_sphere():
+    """An icosphere (radius 30 mm): lv cap on top (z > 24), rv on one side (x > 12), myo elsewhere,
+    and an lv patch at the bottom (z < -27): a blood pool showing through the apex."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=30.0)
+    verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    labels = np.full(len(verts), STRUCTURES["myo"], np.uint8)
+    labels[verts[:, 0] > 12.0] = STRUCTURES["rv"]
+    labels[verts[:, 2] > 24.0] = STRUCTURES["lv"]
+    labels[verts[:, 2] < -27.0] = STRUCTURES["lv"]
+    return verts, faces, labels
+
+
+def test_a_biventricular_surface_keeps_its_basal_lv_cut_and_relabels_other_lv_patches_myo():
+    verts, faces, labels = _capped_sphere()
+    out, relabelled = lv_gaps_to_myo(verts, faces, labels)
+    base, apex = verts[:, 2] > 24.0, verts[:, 2] < -27.0
+    assert (out[base] == STRUCTURES["lv"]).all() and (out[apex] == STRUCTURES["myo"]).all()
+    assert np.array_equal(out[~apex], labels[~apex])
+    assert len(relabelled) == 1 and relabelled[0]["vertices"] == apex.sum()
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    cap_area = mesh.area_faces[apex[faces].all(axis=1)].sum()
+    assert cap_area < relabelled[0]["area_mm2"] < 2 * cap_area  # vertex areas: a ring more than whole faces
+    # One patch only, or a whole heart (other structures on the surface): nothing changes.
+    single = np.where(apex, STRUCTURES["myo"], labels).astype(np.uint8)
+    kept, none = lv_gaps_to_myo(verts, faces, single)
+    assert none == [] and np.array_equal(kept, single)
+    whole = np.where(verts[:, 1] > 20.0, STRUCTURES["la"], labels).astype(np.uint8)
+    same, none = lv_gaps_to_myo(verts, faces, whole)
+    assert none == [] and np.array_equal(same, whole)

@@ -21,7 +21,7 @@ from skimage.graph import MCP_Geometric
 
 from meshsar_builder.geometry.digital_topology import ball_core
 from meshsar_builder.geometry.label_repair import (
-    CHAMBERS, clean_labels, correct_handles, fill_junction_walls, separate_contacts)
+    CHAMBERS, clean_labels, correct_handles, fill_junction_walls, lv_gaps_to_myo, separate_contacts)
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError, MeshError
 
@@ -202,7 +202,7 @@ def labels_to_surface(
     plain = contour(iso_grid(union, affine, params))
     if is_closed_genus0(*plain)[0]:
         # Already genus 0: no repair, so a surface that needs none is never changed by one.
-        return Surface(*plain, nearest_labels(plain[0], chosen, chosen > 0, affine), {})
+        return _surface(*plain, nearest_labels(plain[0], chosen, chosen > 0, affine), {})
     record: dict = {"euler_before": int(trimesh.Trimesh(*plain, process=False).euler_number)}
     # The repair's distance maps need only the heart and a margin, not a CT's whole field of view.
     chosen, affine = _crop(chosen, affine, params.gap_mm + params.wall_mm)
@@ -228,7 +228,13 @@ def labels_to_surface(
                         f"topology repair; handles left at {_handles_left(grid, repaired)}; {_summary(record)}")
     record.update(_repair_figures(chosen, np.where(walls, 0, repaired), handles, gaps, verts, faces, plain, affine, params))
     _check_repair(record, name, params)
-    return Surface(verts, faces, nearest_labels(verts, repaired, repaired > 0, affine), record)
+    return _surface(verts, faces, nearest_labels(verts, repaired, repaired > 0, affine), record)
+
+
+def _surface(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, record: dict) -> Surface:
+    """The Surface, with a biventricular surface's stray LV patches relabelled (lv_gaps_to_myo, recorded)."""
+    labels, relabelled = lv_gaps_to_myo(verts, faces, labels)
+    return Surface(verts, faces, labels, record | ({"lv_patches_relabelled": relabelled} if relabelled else {}))
 
 
 def _crop(labels: np.ndarray, affine: np.ndarray, margin_mm: float) -> tuple[np.ndarray, np.ndarray]:
