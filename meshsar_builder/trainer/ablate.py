@@ -75,6 +75,19 @@ def variant_table(base: dict, variant: str, seed: int, first_view: str, epochs: 
     return table
 
 
+def _setup(config, data, out, prefix: str, split: str, epochs: int | None) -> tuple[dict, Path, str, Path]:
+    """The config's table (checked first: errors name the file before anything trains), the data
+    folder, the build's first view and the ablation's folder (out, or
+    DATA/ablations/<prefix><config name>-<split>[-e<epochs>])."""
+    text = read_text(config, "trainer config")
+    parse_config(text, str(config))
+    base = tomllib.loads(text)
+    data = Path(data)
+    folder = Path(out) if out is not None else (
+        data / "ablations" / f"{prefix}{base['name']}-{split}{'' if epochs is None else f'-e{epochs}'}")
+    return base, data, read_index(data)["views"][0]["name"], folder
+
+
 def _means(summary: dict, method: str) -> dict[str, float]:
     return {c: summary["all"][method][c][0] for c in COLUMNS}
 
@@ -91,13 +104,7 @@ def ablate(config: str | os.PathLike, data: str | os.PathLike, split: str = "see
     unknown = [v for v in variants if v not in VARIANTS]
     if unknown:
         raise InputError(f"unknown ablation variant {unknown[0]!r}; known: {', '.join(VARIANTS)}")
-    text = read_text(config, "trainer config")
-    parse_config(text, str(config))  # errors name the file before anything trains
-    base = tomllib.loads(text)
-    data = Path(data)
-    first_view = read_index(data)["views"][0]["name"]
-    folder = Path(out) if out is not None else (
-        data / "ablations" / f"{base['name']}-{split}{'' if epochs is None else f'-e{epochs}'}")
+    base, data, first_view, folder = _setup(config, data, out, "", split, epochs)
     runs, baselines = {v: {} for v in variants}, {}
     # Seed by seed, every variant: an ablation stopped part-way has compared the variants on equal terms.
     for seed in seeds:
@@ -190,13 +197,7 @@ def radar_ablation(config: str | os.PathLike, data: str | os.PathLike, split: st
         raise InputError(f"radar weights: need positive values, got {list(weights)}")
     if len(seeds) < 2:
         raise InputError(f"seeds: a paired comparison over seeds needs at least 2, got {list(seeds)}")
-    text = read_text(config, "trainer config")
-    parse_config(text, str(config))  # errors name the file before anything trains
-    base = tomllib.loads(text)
-    data = Path(data)
-    first_view = read_index(data)["views"][0]["name"]
-    folder = Path(out) if out is not None else (
-        data / "ablations" / f"radar-{base['name']}-{split}{'' if epochs is None else f'-e{epochs}'}")
+    base, data, first_view, folder = _setup(config, data, out, "radar-", split, epochs)
     options = {"first_view": first_view, "epochs": epochs, "folder": folder, "data": data, "split": split,
                "device": device, "progress": progress}
     validation = {}
