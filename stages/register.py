@@ -103,5 +103,6 @@ def finish(ctx: Context, results: Results) -> None:
         write_report(ctx.stage_dir(NAME), records, len(ssm_subjects(results)), ctx.recipe.registration)
 
 
-# Version 7: issue 26 (v6: the fold guard adds the first-order term on folded regions).
+# Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
+# adds the first-order term on folded regions).
 STAGE = Stage(name=NAME, version=9, plan=plan, run=run, finish=finish, again=again)

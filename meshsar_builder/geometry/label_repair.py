@@ -257,9 +257,9 @@ def lv_gaps_to_myo(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> 
     the LV's blood pool reaches the outer surface only where the stack cuts the base (the largest
     patch). Another LV patch is a gap in the myocardium's labels: on all 8 real M&Ms ED maps,
     44-523 mm^2, mostly the most apical slice labelled blood pool only (on one map also two
-    patches at mid-ventricle). Left as LV, it made one label mean two anatomies from subject to subject: label-aware
-    registration paired an apical patch with nothing, and the LV centroid landmark moved by up
-    to 14 mm. Whole hearts (atria, vessels) are left as they are.
+    patches at mid-ventricle). Left as LV, it made one label mean two anatomies from subject to
+    subject: label-aware registration paired an apical patch with nothing, and the LV centroid
+    landmark moved by up to 14 mm. Whole hearts (atria, vessels) are left as they are.
     """
     lv, myo = STRUCTURES["lv"], STRUCTURES["myo"]
     present = set(np.unique(labels).tolist())
