@@ -17,12 +17,17 @@ from meshsar_builder.trainer.evaluate import BASELINES  # noqa: E402
 from .test_train import TINY_CONFIG, make_dataset  # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def ablation(tmp_path_factory):
-    root = tmp_path_factory.mktemp("ablate")
+def tiny_inputs(root):
+    """A tiny build and a 4-epoch tiny config under root (the ablations shorten it to 2)."""
     data = make_dataset(root / "data")
     config = root / "tiny.toml"
     config.write_text(TINY_CONFIG.replace("epochs = 2", "epochs = 4"))
+    return data, config
+
+
+@pytest.fixture(scope="module")
+def ablation(tmp_path_factory):
+    data, config = tiny_inputs(tmp_path_factory.mktemp("ablate"))
     return data, config, ablate(config, data, seeds=(0, 1), epochs=2, samples=2000, progress=False)
 
 

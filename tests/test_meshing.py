@@ -239,3 +239,28 @@ def test_thick_slices_keep_the_volume(slice_mm, tolerance):
     assert abs(m.volume / (2 / 3 * np.pi * 25**2 * 70) - 1) < tolerance
     points, _ = trimesh.sample.sample_surface(m, 5000, seed=0)
     assert np.abs(half_spheroid_sdf(points)).mean() < 0.3
+
+
+def test_a_short_axis_maps_apical_lv_gap_is_meshed_as_myocardium_and_recorded():
+    """A ball of myocardium round an LV cavity, cut flat at the top (the basal cut shows the LV)
+    with the wall missing at the bottom (an apical slice labelled blood pool only): the surface
+    shows LV at the base only, and the meshes sidecar's record lists the patch relabelled."""
+    mask, affine = ball_volume((50, 50, 50), (1, 1, 1), 20)
+    cavity, _ = ball_volume((50, 50, 50), (1, 1, 1), 14)
+    z = (np.arange(50) - 24.5)[None, None, :]
+    x = (np.arange(50) - 24.5)[:, None, None]
+    y = (np.arange(50) - 24.5)[None, :, None]
+    labels = np.where(mask, STRUCTURES["myo"], 0).astype(np.uint8)
+    labels[cavity] = STRUCTURES["lv"]
+    labels[mask & (z > 12)] = 0  # the basal cut
+    labels[mask & (z < -10) & (x**2 + y**2 < 25)] = STRUCTURES["lv"]  # the apical gap through the wall
+    surface = labels_to_surface(labels, affine, ["lv", "myo", "rv"], MeshingParams())
+    lv = surface.labels == STRUCTURES["lv"]
+    assert lv.any() and (surface.verts[lv, 2] > 5).all()  # at the base only
+    assert (surface.labels[surface.verts[:, 2] < -17] == STRUCTURES["myo"]).all()
+    [patch] = surface.repair["lv_patches_relabelled"]
+    assert patch["vertices"] > 0 and 10 < patch["area_mm2"] < 400
+    # A whole heart's labels are left as drawn.
+    labels[mask & (y > 12)] = STRUCTURES["la"]
+    whole = labels_to_surface(labels, affine, ["lv", "myo", "la"], MeshingParams())
+    assert "lv_patches_relabelled" not in whole.repair and (whole.labels[whole.verts[:, 2] < -17] == STRUCTURES["lv"]).any()

@@ -18,17 +18,14 @@ from meshsar_builder.trainer.ablate import PAIRED_COLUMNS, radar_ablation  # noq
 from meshsar_builder.trainer.config import load_config  # noqa: E402
 from meshsar_builder.trainer.train import read_log  # noqa: E402
 
-from .test_train import TINY_CONFIG, make_dataset  # noqa: E402
+from .test_ablate import tiny_inputs  # noqa: E402
 
 SEEDS, WEIGHTS = (0, 1), (0.03, 0.3)
 
 
 @pytest.fixture(scope="module")
 def ablation(tmp_path_factory):
-    root = tmp_path_factory.mktemp("radar_ablate")
-    data = make_dataset(root / "data")
-    config = root / "tiny.toml"
-    config.write_text(TINY_CONFIG.replace("epochs = 2", "epochs = 4"))
+    data, config = tiny_inputs(tmp_path_factory.mktemp("radar_ablate"))
     result = radar_ablation(config, data, seeds=SEEDS, weights=WEIGHTS, epochs=2, samples=2000, progress=False)
     return data, config, data / "ablations" / "radar-tiny-seed-0-e2", result
 

@@ -29,6 +29,7 @@ from scipy.sparse.csgraph import connected_components
 from skimage.measure import euler_number
 
 from meshsar_builder.geometry.digital_topology import ball_core, filled_solid
+from meshsar_builder.geometry.measures import vertex_areas
 from meshsar_builder.geometry.structures import STRUCTURES
 
 # Pairs of structures that anatomy joins: their contact is kept and the unlabelled wall between
@@ -270,9 +271,7 @@ def lv_gaps_to_myo(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> 
     n = len(verts)
     graph = coo_matrix((np.ones(inside.sum()), (edges[inside, 0], edges[inside, 1])), shape=(n, n))
     _, component = connected_components(graph, directed=False)
-    corners = verts[faces]
-    face_area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    vertex_area = np.bincount(faces.ravel(), np.repeat(face_area / 3, 3), minlength=n)
+    vertex_area = vertex_areas(verts, faces)
     patches = np.unique(component[labels == lv])
     areas = {int(c): float(vertex_area[(component == c) & (labels == lv)].sum()) for c in patches}
     keep = max(areas, key=areas.get)

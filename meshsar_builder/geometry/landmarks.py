@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from meshsar_builder.geometry.measures import vertex_areas
 from meshsar_builder.geometry.meshing import point_to_surface
 from meshsar_builder.geometry.structures import STRUCTURES
 
@@ -77,12 +78,6 @@ class Landmarks:
         return Landmarks(tuple(keys), self.weights[rows], confidence, self.dropped)
 
 
-def _vertex_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    corners = verts[faces]
-    face_areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    return np.bincount(faces.ravel(), np.repeat(face_areas / 3.0, 3), minlength=len(verts))
-
-
 def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, min_vertices: int = 10,
                     ring_points: int = 0) -> Landmarks:
     """Landmarks of a labelled surface (see the module docstring).
@@ -93,7 +88,7 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
     """
     verts, faces, labels = np.asarray(verts, dtype=np.float64), np.asarray(faces), np.asarray(labels).astype(np.int64)
     n = len(verts)
-    areas = _vertex_areas(verts, faces)
+    areas = vertex_areas(verts, faces)
     keys, rows, confidence, dropped = [], [], [], []
 
     def add(key: str, index: np.ndarray, weight: np.ndarray, sure: float = 1.0) -> None:
