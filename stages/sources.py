@@ -146,4 +146,4 @@ def draw_shape_samples(ctx: Context, spec: SourceSpec) -> dict:
 
 
 # v3: 4-D label maps (one item per T index), acdc's predicted maps, nifti's regex / frame_table.
-STAGE = Stage(name=NAME, version=3, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=4, plan=plan, run=run)

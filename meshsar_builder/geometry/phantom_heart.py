@@ -36,6 +36,8 @@ _VESSEL_BLEND_MM = 8.0
 # half the vessel blend (else the fillet bridges the gap) and survive the meshing stage's 1 mm
 # Gaussian smoothing and a 2x downsampling of the mask.
 _VESSEL_GAP_MM = 7.0
+# A fall in clearance smaller than this is the obstacle's curvature, not a vessel turning back.
+_RETURN_TOLERANCE_MM = 0.5
 # Signed distances beyond this change no blend and no label: each primitive is evaluated only in
 # its bounding box padded by it, and clamped to it (at least twice the largest blend radius).
 _FAR_MM = 16.0
@@ -373,18 +375,19 @@ def _on_grid(shape, axes: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarr
 
 
 def _cut_on_return(tube: _Tube, obstacle) -> _Tube:
-    """The tube cut where, after first clearing `obstacle` by `_VESSEL_GAP_MM`, it comes back
-    closer than that: a vessel leaves the body once and never touches it again (no handle)."""
+    """The tube cut where, once outside `obstacle`, it turns back toward it within
+    `_VESSEL_GAP_MM`: a vessel leaves the body once and never touches it again (no handle).
+
+    Turning back means a clearance below both the gap and the largest clearance reached so far
+    (less `_RETURN_TOLERANCE_MM`). A branch that starts at the fork nearer than the gap and
+    runs on toward the body is cut too, not only a vessel that cleared the gap first."""
     points, arclength = tube.samples()
     clearance = _at_points(obstacle, points) - tube.radius(arclength)
-    clear = clearance > _VESSEL_GAP_MM
-    if not clear.any():
-        return tube
-    exit_index = int(np.argmax(clear))
-    back = ~clear[exit_index:]
+    reached = np.maximum.accumulate(clearance)
+    back = (reached > 0) & (clearance < np.minimum(_VESSEL_GAP_MM, reached - _RETURN_TOLERANCE_MM))
     if not back.any():
         return tube
-    return tube.trimmed(float(arclength[exit_index + int(np.argmax(back))]))
+    return tube.trimmed(float(arclength[int(np.argmax(back))]))
 
 
 @dataclass(frozen=True)
