@@ -87,6 +87,26 @@ def test_rerun_skips_and_param_change_reruns(tmp_path, tmp_recipe):
     assert [r["ran"] for r in edited.summary] == [1, 1]
 
 
+
+def test_a_moved_build_folder_stays_up_to_date(tmp_path, tmp_recipe, monkeypatch):
+    """Sidecars name the build's own inputs relative to the folder: moving it, or reaching it by
+    another path (relative from another directory, a cluster's mount), reruns nothing."""
+    data = nifti_folder(tmp_path / "data")
+    recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=1.0))
+    first = build(R.load(recipe), tmp_path / "out", until="remesh")
+    assert [r["ran"] for r in first.summary] == [1, 2, 2]
+    side = json.loads((tmp_path / "out" / "remesh" / "nifti-good0.json").read_text())
+    assert set(side["inputs"]) == {"meshes/nifti-good0.ply"}
+    (tmp_path / "out").rename(tmp_path / "moved")
+    monkeypatch.chdir(tmp_path)
+    again = build(R.load(recipe), Path("moved"), until="remesh")
+    assert [r["ran"] for r in again.summary] == [0, 0, 0]
+    # a changed input still reruns what reads it, whatever path it is reached by
+    mesh = tmp_path / "moved" / "meshes" / "nifti-good0.ply"
+    mesh.write_bytes(mesh.read_bytes() + b"\n")
+    changed = build(R.load(recipe), tmp_path / "moved", until="remesh")
+    assert [r["ran"] for r in changed.summary] == [0, 0, 1]
+
 def test_killed_build_resumes_to_identical_outputs(tmp_path, tmp_recipe):
     data = nifti_folder(tmp_path / "data", n_good=6)
     recipe = tmp_recipe(NIFTI_RECIPE.format(path=data, spacing=0.5))

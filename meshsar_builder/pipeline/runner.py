@@ -131,8 +131,16 @@ def code_version(stage: Stage) -> str:
     return f"{__version__}+{stage.name}.{stage.version}"
 
 
-def _input_digests(item: Item) -> dict[str, str]:
-    return {p: sha256_file(p) for p in item.inputs}
+def _input_key(ctx: Context, path: str) -> str:
+    """A sidecar's name for an input: the build's own files relative to its output folder, so a
+    build that is moved, or reached by another path (a cluster's mount), stays up to date; any
+    other file (source data) as given."""
+    relative = os.path.relpath(os.path.abspath(path), os.path.abspath(ctx.out))
+    return path if relative == ".." or relative.startswith(".." + os.sep) else Path(relative).as_posix()
+
+
+def _input_digests(ctx: Context, item: Item) -> dict[str, str]:
+    return {_input_key(ctx, p): sha256_file(p) for p in item.inputs}
 
 
 def _up_to_date(ctx: Context, stage: Stage, item: Item) -> dict | None:
@@ -152,8 +160,9 @@ def _up_to_date(ctx: Context, stage: Stage, item: Item) -> dict | None:
         or any(not (stage_dir / o).exists() for o in item.outputs)
     ):
         return None
-    try:
-        same_inputs = rec.get("inputs") == _input_digests(item)
+    try:  # a record's own keys renamed the same way: those written before relative keys still match
+        recorded = {_input_key(ctx, p): digest for p, digest in (rec.get("inputs") or {}).items()}
+        same_inputs = recorded == _input_digests(ctx, item)
     except OSError:  # an input went missing: rerun, and let the item fail naming it
         return None
     return rec if same_inputs else None
@@ -163,7 +172,7 @@ def run_item(ctx: Context, stage: Stage, item: Item) -> tuple[dict | None, dict 
     """Run one item (in a worker); return (sidecar record, None) or (None, failure record)."""
     t0 = time.perf_counter()
     try:
-        inputs = _input_digests(item)
+        inputs = _input_digests(ctx, item)
         # One BLAS/OpenMP thread per item: threaded reductions sum in a different order
         # on another core count, and outputs must not depend on the machine or worker count.
         # Parallelism comes from running items side by side instead.
