@@ -201,7 +201,7 @@ def _range_bounds(facets, positions, first, last, low, high):
                 lo[k] = min(lo[k], r2[k])
                 hi[k] = max(hi[k], r2[k])
         a, b = lo[0], hi[0]
-        for k in range(1, block):
+        for k in range(1, min(block, max(last[m] - first[m], 1))):  # the lanes above were not filled
             a = min(a, lo[k])
             b = max(b, hi[k])
         low[m] = math.sqrt(max(a, _TINY))
@@ -247,8 +247,15 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
     k_max = wavenumbers.max()
     for m in range(positions.shape[0]):
         ax, ay, az, r_m = positions[m, 0], positions[m, 1], positions[m, 2], centre_mm[m]
-        acc_re[:] = 0.0
-        acc_im[:] = 0.0
+        # Only the lanes this antenna's blocks fill are cleared and added: a factorised cluster's
+        # coarse antenna sums ~100 items, not LANES. The tree starts at the least power of two
+        # holding them; the lanes above hold zeros, so the sums are the full tree's, bit for bit.
+        used = min(per_block, last[m] - first[m]) * (3 if po else 1)
+        lanes = 1
+        while lanes < used:
+            lanes *= 2
+        acc_re[:, :lanes] = 0.0
+        acc_im[:, :lanes] = 0.0
         n_flagged = 0
         for start in range(first[m], last[m], per_block):
             stop = min(start + per_block, last[m])
@@ -352,7 +359,7 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                     even = 2.0 * t[k] * t_odd[k] - t_even[k]
                     e_re[k] += c_re[k] * even
                     e_im[k] += c_im[k] * even
-        width = LANES  # add the lanes: a fixed tree of vectorized halvings
+        width = lanes  # add the lanes: a fixed tree of vectorized halvings
         while width > 1:
             width //= 2
             for l in range(n_terms):
