@@ -10,9 +10,9 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from meshsar_builder.geometry.groupwise import bbox_centred, final_round, mean_template, movement, taubin
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.nricp import flipped_faces
 from meshsar_builder.geometry.registration_params import RegistrationParams
-from meshsar_builder.geometry.remesh import self_intersecting_faces
 from meshsar_builder.geometry.ssm import population_pose, rigid_fit
 from meshsar_builder.pipeline.errors import MeshError
 

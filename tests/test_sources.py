@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from meshsar_builder.dataset.shards import Shard
 from meshsar_builder.dataset.label_maps import InputWarning, read_label_map
 from meshsar_builder.dataset.shape_models import load_shape_model, read_surface
+from meshsar_builder.dataset.shards import Shard
 from meshsar_builder.dataset.sources import ACDC_TABLE, MMWHS_TABLE, index_acdc, index_mmwhs, index_nifti
 from meshsar_builder.dataset.verify import verify
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
@@ -232,7 +232,7 @@ samples = {samples}
 
 
 def test_shape_model_samples_are_seeded_truncated_and_clean(tmp_path, tmp_recipe):
-    from meshsar_builder.geometry.remesh import self_intersecting_faces
+    from meshsar_builder.geometry.intersections import self_intersecting_faces
 
     recipe = tmp_recipe(SHAPE_RECIPE.format(path=ATLAS, modes="modes.csv.gz", variances="variances.csv", samples=5))
     results = build(R.load(recipe), tmp_path / "out", until="sources")
@@ -255,7 +255,7 @@ def test_shape_model_samples_are_seeded_truncated_and_clean(tmp_path, tmp_recipe
 def test_shape_model_draws_that_self_intersect_are_redrawn(tmp_path, tmp_recipe):
     """One mode (sigma 1 m) pushing vertex 0 inward and the pole (0, 0, 45) outward, or the
     reverse: far enough inward either pierces the far side, so most draws must be redrawn."""
-    from meshsar_builder.geometry.remesh import self_intersecting_faces
+    from meshsar_builder.geometry.intersections import self_intersecting_faces
 
     mean, faces = read_surface(ATLAS_FILES["mean"])
     pole = int(np.argmax(mean[:, 2]))

@@ -29,12 +29,13 @@ import numpy as np
 import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.meshing import transfer_labels
 from meshsar_builder.geometry.nricp import flipped_faces
 from meshsar_builder.geometry.registration import accept, choose_template, register
 from meshsar_builder.geometry.registration_params import RegistrationParams
-from meshsar_builder.geometry.remesh import self_intersecting_faces, simplify
+from meshsar_builder.geometry.remesh import simplify
 from meshsar_builder.geometry.ssm import procrustes_align, rigid_fit
 from meshsar_builder.pipeline.errors import MeshError
 from meshsar_builder.pipeline.io import read_json, sha256_file, write_bytes, write_json

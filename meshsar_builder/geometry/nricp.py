@@ -50,10 +50,10 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.landmarks import face_labels
 from meshsar_builder.geometry.meshing import closest_among
 from meshsar_builder.geometry.registration_params import RegistrationParams
-from meshsar_builder.geometry.remesh import self_intersecting_faces
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:

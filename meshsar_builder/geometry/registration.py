@@ -17,6 +17,7 @@ from collections.abc import Mapping
 import numpy as np
 import trimesh
 
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.landmarks import (
     common_landmarks,
     dropped_landmarks,
@@ -28,7 +29,7 @@ from meshsar_builder.geometry.landmarks import (
 from meshsar_builder.geometry.meshing import point_to_surface
 from meshsar_builder.geometry.nricp import Subject, Surface, flipped_faces, nricp
 from meshsar_builder.geometry.registration_params import RegistrationParams
-from meshsar_builder.geometry.remesh import require_valid, self_intersecting_faces
+from meshsar_builder.geometry.remesh import require_valid
 from meshsar_builder.pipeline.errors import MeshError
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import pymeshlab
 import trimesh
 
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.pipeline.errors import MeshError
 
 # pymeshlab renamed AbsoluteValue to PureValue (2022.2); both mean "in mesh units" (mm here).
@@ -79,16 +80,6 @@ def _meshset(verts: np.ndarray, faces: np.ndarray) -> pymeshlab.MeshSet:
 def _arrays(meshset: pymeshlab.MeshSet) -> tuple[np.ndarray, np.ndarray]:
     mesh = meshset.current_mesh()
     return np.array(mesh.vertex_matrix(), dtype=np.float64), np.array(mesh.face_matrix(), dtype=np.int64)
-
-
-def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Which faces intersect a face they share no vertex or edge with.
-
-    verts : (n, 3) float, faces : (m, 3) int  ->  (m,) bool
-    """
-    meshset = _meshset(verts, faces)
-    meshset.compute_selection_by_self_intersections_per_face()
-    return np.array(meshset.current_mesh().face_selection_array(), dtype=bool)
 
 
 def mesh_checks(verts: np.ndarray, faces: np.ndarray) -> dict:

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from meshsar_builder.geometry.remesh import self_intersecting_faces
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.pipeline.errors import MeshError
 from meshsar_builder.pipeline.io import atomic_path
 

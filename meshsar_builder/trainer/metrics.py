@@ -13,8 +13,8 @@ import torch
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface
-from meshsar_builder.geometry.remesh import self_intersecting_faces
 from meshsar_builder.radar.visibility import embree_intersector
 from meshsar_builder.trainer.losses import mesh_edges, sample_surface, uniform_laplacian
 
