@@ -108,3 +108,9 @@ def test_small_inputs_and_bad_indices():
     assert self_intersecting_faces(np.zeros((0, 3)), np.zeros((0, 3), int)).shape == (0,)
     with pytest.raises(ValueError, match="faces: indices"):
         self_intersecting_faces(np.zeros((3, 3)), np.array([[0, 1, 3], [0, 1, 2]]))
+    with pytest.raises(ValueError, match="1 vertices are not finite"):
+        self_intersecting_faces(np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]]), np.array([[0, 1, 2], [0, 2, 1]]))
+    # A degenerate mesh (every corner at one point) and far-flung faces do not break the grid.
+    assert self_intersecting_faces(np.zeros((4, 3)), np.array([[0, 1, 2], [1, 2, 3]])).tolist() == [False, False]
+    far = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1e9, 0, 0], [1e9 + 1, 0, 0], [1e9, 1, 0]])
+    assert not self_intersecting_faces(far, np.array([[0, 1, 2], [3, 4, 5]])).any()

@@ -40,6 +40,8 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     if len(faces) < 2:
         return np.zeros(len(faces), dtype=bool)
+    if not np.isfinite(verts).all():
+        raise ValueError(f"verts: {int((~np.isfinite(verts)).any(axis=1).sum())} vertices are not finite")
     if faces.min() < 0 or faces.max() >= len(verts):
         raise ValueError(f"faces: indices must lie in [0, {len(verts)}), got {faces.min()}..{faces.max()}")
     return _self_intersections(verts, faces, _CELL)
