@@ -1,20 +1,13 @@
 """The self-intersection test against pymeshlab's (the independent reference) and analytic cases."""
 
 import numpy as np
-import pymeshlab
 import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from meshsar_builder.geometry.intersections import pymeshlab_self_intersecting_faces as pymeshlab_faces
 from meshsar_builder.geometry.intersections import self_intersecting_faces
-
-
-def pymeshlab_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    meshset = pymeshlab.MeshSet()
-    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.asarray(verts, np.float64), face_matrix=np.asarray(faces, np.int32)))
-    meshset.compute_selection_by_self_intersections_per_face()
-    return np.array(meshset.current_mesh().face_selection_array(), dtype=bool)
 
 
 def closed_shape(kind: int) -> trimesh.Trimesh:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+import pymeshlab
 
 # Signed volumes below this fraction of (longest edge)^3 count as zero (coplanar points, a
 # segment through an edge): a few hundred times the rounding of their products, no more, so
@@ -49,6 +50,19 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 # The narrow phase works on the rows of an (8, 3) scratch array P (the pair's six corners and
 # two segment ends), named by row: views and temporaries in the pair loop cost more than the tests.
+
+
+def pymeshlab_self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """pymeshlab's per-face self-intersection selection, the reference the tests and
+    `meshsar bench geometry` compare self_intersecting_faces with.
+
+    verts : (n, 3) float, faces : (m, 3) int  ->  (m,) bool
+    """
+    meshset = pymeshlab.MeshSet()
+    meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(verts, dtype=np.float64),
+                                    face_matrix=np.ascontiguousarray(faces, dtype=np.int32)))
+    meshset.compute_selection_by_self_intersections_per_face()
+    return np.array(meshset.current_mesh().face_selection_array(), dtype=bool)
 
 
 @numba.njit(cache=True)
