@@ -11,9 +11,7 @@ item per subject, side by side; runner.Stage.again):
   (geometry/groupwise.py): `register/template-<r>.ply`, its json with the movement from
   the previous template;
 - the last round is round `groupwise_rounds`, or the first round r >= 1 whose template
-  moved less than `groupwise_converge_mm`; or, where round r >= 2's template moved less
-  than that and round r-1 accepted every subject, round r-1, whose fits are then promoted
-  (judged as last-round fits and copied to `register/<item>.ply`) instead of refitted.
+  moved less than `groupwise_converge_mm`.
 
 A template is made while planning its round, since every item of the round depends on
 it, and is kept when its json still names the same inputs. Fits of earlier rounds are
@@ -40,11 +38,9 @@ import dataclasses
 from threadpoolctl import threadpool_limits
 
 from meshsar_builder.geometry.groupwise import (
-    converged_before,
     final_round,
     fit_subject,
     groupwise_template,
-    promote_fit,
     publish,
     seed_template,
     write_report,
@@ -68,25 +64,17 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         return []
     params, folder = ctx.recipe.registration, ctx.stage_dir(NAME)
     round_ = results.passes.get(NAME, 0)
-    item_params = {k: v for k, v in dataclasses.asdict(params).items() if k not in ROUND_KEYS}
     # One BLAS thread, as in the items: the template must not depend on the machine's cores.
     with threadpool_limits(limits=1):
         if round_ == 0:
             template, moved = seed_template(folder, ctx.stage_dir("remesh"), subjects, params), None
         else:
             template, moved = groupwise_template(folder, round_, results.of(NAME), params)
-    previous = results.of(NAME)
-    if converged_before(round_, moved, params, all_accepted=len(previous) == len(subjects)):
-        publish(folder, str(folder / f"template-{round_ - 1}.ply"), round_ - 1)
-        last = {i: i.removeprefix(f"round{round_ - 1}/") for i in previous}
-        return [Item(last[i], (f"{last[i]}.ply",), inputs=(str(folder / f"{i}.ply"),), params=item_params,
-                     data={**{k: rec[k] for k in ("source", "subject", "frame", "phase", "provenance")},
-                           "round": round_ - 1, "final": True, "promoted": rec["fit"], "converged_mm": moved})
-                for i, rec in previous.items()]
     final = final_round(round_, moved, params)
     if final:
         publish(folder, template, round_)
     prefix = "" if final else f"round{round_}/"
+    item_params = {k: v for k, v in dataclasses.asdict(params).items() if k not in ROUND_KEYS}
     return [
         Item(f"{prefix}{i}", (f"{prefix}{i}.ply",), inputs=(str(ctx.stage_dir("remesh") / f"{i}.ply"), template),
              params=item_params, data={"round": round_, "final": final,
@@ -96,12 +84,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
 
 
 def run(ctx: Context, item: Item) -> dict:
-    out = ctx.stage_dir(NAME) / f"{item.id}.ply"
-    if "promoted" in item.data:  # the rounds converged: the previous round's fit is the last one
-        data = {k: v for k, v in item.data.items() if k != "promoted"}
-        return {"fit": promote_fit(item.inputs[0], item.data["promoted"], out, ctx.recipe.registration), **data}
     subject_path, template_path = item.inputs
-    report = fit_subject(subject_path, template_path, out, ctx.recipe.registration,
+    report = fit_subject(subject_path, template_path, ctx.stage_dir(NAME) / f"{item.id}.ply", ctx.recipe.registration,
                          item_rng(ctx.recipe.seed, NAME, item.id), item.data["final"])
     return {"fit": report, **item.data}
 
@@ -119,7 +103,6 @@ def finish(ctx: Context, results: Results) -> None:
         write_report(ctx.stage_dir(NAME), records, len(ssm_subjects(results)), ctx.recipe.registration)
 
 
-# Version 10: a converged groupwise round's fits are the last (geometry/groupwise.converged_before);
-# v9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard adds the
-# first-order term on folded regions).
-STAGE = Stage(name=NAME, version=10, plan=plan, run=run, finish=finish, again=again)
+# Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
+# adds the first-order term on folded regions).
+STAGE = Stage(name=NAME, version=9, plan=plan, run=run, finish=finish, again=again)

@@ -9,15 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from meshsar_builder.geometry.groupwise import (
-    bbox_centred,
-    converged_before,
-    final_round,
-    mean_template,
-    movement,
-    promote_fit,
-    taubin,
-)
+from meshsar_builder.geometry.groupwise import bbox_centred, final_round, mean_template, movement, taubin
 from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.nricp import flipped_faces
 from meshsar_builder.geometry.registration_params import RegistrationParams
@@ -114,35 +106,3 @@ def test_fewer_than_two_fits_is_refused():
 def test_the_last_round_is_the_limit_or_the_first_converged_one(rounds, round_, moved, last):
     params = dataclasses.replace(RegistrationParams(), groupwise_rounds=rounds)
     assert final_round(round_, moved, params) is last
-
-
-@pytest.mark.parametrize(
-    "round_, moved, all_accepted, promoted",
-    [
-        (1, 0.1, True, False),  # round 0's fits are to one subject, never promoted
-        (2, 0.4, True, True),  # round 1's mean moved < 0.5 mm from the template they were fitted to
-        (2, 0.6, True, False),
-        (2, 0.4, False, False),  # a subject rejected in round 1: register round 2 as before
-        (3, 0.2, True, True),
-    ],
-)
-def test_a_converged_groupwise_rounds_fits_are_the_last(round_, moved, all_accepted, promoted):
-    params = dataclasses.replace(RegistrationParams(), groupwise_rounds=5)
-    assert converged_before(round_, moved, params, all_accepted) is promoted
-
-
-def test_a_promoted_fit_is_judged_as_a_last_round_fit(tmp_path):
-    """Label agreement, not judged before the last round, is judged on promotion: a fit that
-    fails it is refused naming the structure and writes nothing; one that passes is copied."""
-    fit = tmp_path / "round1" / "s.ply"
-    fit.parent.mkdir()
-    fit.write_bytes(b"ply bytes")
-    params = RegistrationParams()
-    report = {"mean_mm": 0.1, "p95_mm": 0.3, "flipped_faces": 0, "self_intersections": 0,
-              "label_agreement_by_structure": {"lv": 0.999, "rv": 0.9}}
-    with pytest.raises(MeshError, match="label agreement < .* rv 0.900"):
-        promote_fit(fit, report, tmp_path / "s.ply", params)
-    assert not (tmp_path / "s.ply").exists()
-    report["label_agreement_by_structure"]["rv"] = 0.999
-    assert promote_fit(fit, report, tmp_path / "s.ply", params) is report
-    assert (tmp_path / "s.ply").read_bytes() == b"ply bytes"

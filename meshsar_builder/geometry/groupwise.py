@@ -5,10 +5,6 @@ After a first registration to the reference subject, the template is replaced by
 generalised Procrustes mean of the fits (they share its faces, so the mean is a mesh with
 the template's connectivity and vertex labels) and everyone is registered again, for up to
 `groupwise_rounds` rounds or until the template moves less than `groupwise_converge_mm`.
-Once a groupwise round's fits (round >= 1) average to a template that moved less than that
-from the one they were fitted to, and every subject was accepted, they are the last fits:
-the mean no longer moves, so a further round would refit every subject to a template within
-the tolerance of its own (promote_fit; on the demo that round was a third of the stage).
 
 The mean is put in a canonical frame that no subject's place in the list decides: rotated
 to the subjects' population pose (ssm.population_pose: the pose closest to where all of
@@ -153,13 +149,6 @@ def final_round(round_: int, moved_mm: float | None, params: RegistrationParams)
     return round_ >= 1 and moved_mm is not None and moved_mm < params.groupwise_converge_mm
 
 
-def converged_before(round_: int, moved_mm: float | None, params: RegistrationParams, all_accepted: bool) -> bool:
-    """Whether the fits of round_ - 1 are the last instead of registering round_: they were a
-    groupwise round's (round_ - 1 >= 1), every subject was accepted, and their mean (round_'s
-    template) moved less than the tolerance from the template they were fitted to."""
-    return round_ >= 2 and all_accepted and moved_mm is not None and moved_mm < params.groupwise_converge_mm
-
-
 def register_groupwise(
     template: tuple[np.ndarray, np.ndarray, np.ndarray],
     subjects: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -170,23 +159,15 @@ def register_groupwise(
 
     template : (verts (n, 3), faces (m, 3), labels (n,)) the reference subject's template;
     subjects : (verts (p, 3), faces (q, 3), labels (p,)) per subject; rng(round, subject index).
-    Returns the final fits (s, n, 3), the templates of every round fitted (rounds, n, 3; the
-    last is the one the final fits were fitted to) and one record per round: round, its
+    Returns the final fits (s, n, 3), the templates of every round (rounds, n, 3; the last
+    is the one the final fits were fitted to) and one record per round: round, its
     template's movement (None for round 0), seconds per subject, the fits' reports, and
-    next_template (mean_template's report; for the last round, the template that showed the
-    rounds converged, if one did: converged_before). A rejected fit raises
+    next_template (mean_template's report) unless it is the last. A rejected fit raises
     (registration.accept; label agreement is judged in the last round, as in the stage).
     """
     t_verts, t_faces, t_labels = template
-    rounds, templates, fits, moved, round_ = [], [t_verts], [], None, 0
+    rounds, templates, moved, round_ = [], [t_verts], None, 0
     while True:
-        if converged_before(round_, moved, params, all_accepted=True):  # a rejection raised above
-            for index, report in enumerate(rounds[-1]["fits"]):
-                try:
-                    accept(report, params, correspondence=True)
-                except MeshError as error:
-                    raise MeshError(f"subject {index}, round {round_ - 1}: {error}") from error
-            return np.stack(fits), np.stack(templates[:-1]), rounds
         record, fits, reports = {"round": round_, "movement_mm": moved}, [], []
         t0 = time.perf_counter()
         final = final_round(round_, moved, params)
@@ -273,15 +254,6 @@ def publish(folder: Path, template: str, round_: int) -> None:
                                           "template": f"template-{round_}.ply"})
 
 
-def promote_fit(fit_path: Path, report: dict, out_path: Path, params: RegistrationParams) -> dict:
-    """An item of a round that converged_before says is not run: the previous round's fit at
-    fit_path (its fit report `report`) becomes the last one at out_path once it passes the
-    last round's judgement (accept with label agreement); return the report."""
-    accept(report, params, correspondence=True)
-    write_bytes(out_path, Path(fit_path).read_bytes())
-    return report
-
-
 def fit_subject(subject_path: str, template_path: str, out_path: Path, params: RegistrationParams,
                 rng: np.random.Generator, final: bool) -> dict:
     """One item of a round: register the template at template_path to the subject surface at
@@ -318,15 +290,13 @@ def write_report(folder: Path, records: Mapping[str, dict], planned: int, params
     item records (by item id) and the sidecars of earlier rounds; `planned`: subjects registered.
 
     Also how far the last round's own mean lies from the template it was fitted to (the
-    movement the next round would have had), so convergence can be judged, and where the
-    last round's fits were promoted (converged_before), the template that showed it.
+    movement the next round would have had), so convergence can be judged.
     """
-    first = next(iter(records.values()))
-    last, promoted = first["round"], "converged_mm" in first
+    last = next(iter(records.values()))["round"]
     rounds = []
     for r in range(last + 1):
         meta = read_json(folder / f"template-{r}.json")
-        if r < last or promoted:  # the fits the next template was made of: this round's accepted ones
+        if r < last:  # the fits the next template was made of: this round's accepted ones
             done = [read_json(folder / f"{i}.json") for i in read_json(folder / f"template-{r + 1}.json")["fits"]]
         else:
             done = list(records.values())
@@ -345,8 +315,6 @@ def write_report(folder: Path, records: Mapping[str, dict], planned: int, params
             residual = {k: report[k] for k in ("movement_mm", "movement_max_mm")}
         except MeshError as e:  # a report only: the fits stand
             residual = {"error": str(e)}
-    # Where the rounds converged before the limit (converged_before), the template that showed it.
-    converged = {"template": f"template-{last + 1}.ply", "movement_mm": first["converged_mm"]} if promoted else None
     write_json(folder / "groupwise.json", {"rounds": rounds, "last_round": last, "next_round_movement": residual,
-                                           "converged_by": converged, "converge_mm": params.groupwise_converge_mm,
+                                           "converge_mm": params.groupwise_converge_mm,
                                            "max_rounds": params.groupwise_rounds})
