@@ -50,6 +50,20 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 # The narrow phase works on the rows of an (8, 3) scratch array P (the pair's six corners and
 # two segment ends), named by row: views and temporaries in the pair loop cost more than the tests.
+# Explicit signatures: numba would otherwise compile a version for every literal row number
+# passed (29 of _cross2; 17 s of compilation instead of a few).
+_SIGNATURES = {
+    "_orient": "float64(float64[:, ::1], int64, int64, int64, int64)",
+    "_drop_axis": "int64(float64[:, ::1], int64, int64, int64)",
+    "_cross2": "float64(float64[:, ::1], int64, int64, int64, int64, int64)",
+    "_on_segment_2d": "boolean(float64[:, ::1], int64, int64, int64, int64, int64)",
+    "_segments_meet_2d": "boolean(float64[:, ::1], int64, int64, int64, int64, int64, int64, float64)",
+    "_inside_2d": "boolean(float64[:, ::1], int64, int64, int64, int64, int64, int64, float64)",
+    "_segment_meets_triangle": "boolean(float64[:, ::1], int64, int64, int64, int64, int64, float64, float64, boolean)",
+    "_same_ray_2d": "boolean(float64[:, ::1], int64, int64, int64, int64, int64, float64)",
+    "_strictly_between_2d": "boolean(float64[:, ::1], int64, int64, int64, int64, int64, int64, float64, int64)",
+    "_wedges_overlap_2d": "boolean(float64[:, ::1], int64, int64, int64, int64, int64, int64, int64, float64)",
+}
 
 
 def pymeshlab_self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -65,7 +79,7 @@ def pymeshlab_self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> n
     return np.array(meshset.current_mesh().face_selection_array(), dtype=bool)
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_orient"], cache=True)
 def _orient(P, p, q, r, s):
     """Six times the signed volume of the tetrahedron of rows p, q, r, s."""
     ax, ay, az = P[q, 0] - P[p, 0], P[q, 1] - P[p, 1], P[q, 2] - P[p, 2]
@@ -83,7 +97,7 @@ def _sign(x, tol):
     return 0
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_drop_axis"], cache=True)
 def _drop_axis(P, p, q, r):
     """The axis along which the plane of rows p, q, r is steepest: dropping it keeps the plane's shape."""
     ux, uy, uz = P[q, 0] - P[p, 0], P[q, 1] - P[p, 1], P[q, 2] - P[p, 2]
@@ -94,20 +108,20 @@ def _drop_axis(P, p, q, r):
     return 1 if ny >= nz else 2
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_cross2"], cache=True)
 def _cross2(P, a, b, c, i, j):
     """z of (b - a) x (c - a) in the (i, j) plane."""
     return (P[b, i] - P[a, i]) * (P[c, j] - P[a, j]) - (P[b, j] - P[a, j]) * (P[c, i] - P[a, i])
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_on_segment_2d"], cache=True)
 def _on_segment_2d(P, p, q, r, i, j):
     """Row r, collinear with segment [p, q], lies within its box."""
     return (min(P[p, i], P[q, i]) <= P[r, i] <= max(P[p, i], P[q, i])
             and min(P[p, j], P[q, j]) <= P[r, j] <= max(P[p, j], P[q, j]))
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_segments_meet_2d"], cache=True)
 def _segments_meet_2d(P, a, b, c, d, i, j, tol):
     """Closed segments [a, b] and [c, d] share a point, in the (i, j) plane."""
     d1, d2 = _sign(_cross2(P, c, d, a, i, j), tol), _sign(_cross2(P, c, d, b, i, j), tol)
@@ -118,7 +132,7 @@ def _segments_meet_2d(P, a, b, c, d, i, j, tol):
             or (d3 == 0 and _on_segment_2d(P, a, b, c, i, j)) or (d4 == 0 and _on_segment_2d(P, a, b, d, i, j)))
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_inside_2d"], cache=True)
 def _inside_2d(P, x, p, q, r, i, j, tol):
     """Row x lies in the closed triangle of rows p, q, r, in the (i, j) plane."""
     s1 = _sign(_cross2(P, p, q, x, i, j), tol)
@@ -127,7 +141,7 @@ def _inside_2d(P, x, p, q, r, i, j, tol):
     return (s1 >= 0 and s2 >= 0 and s3 >= 0) or (s1 <= 0 and s2 <= 0 and s3 <= 0)
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_segment_meets_triangle"], cache=True)
 def _segment_meets_triangle(P, a, b, p, q, r, tol, tol2, strict):
     """Segment [a, b] meets triangle (p, q, r) (rows of P); strict: crosses its interior (a
     coplanar segment never does). tol, tol2: the zero of signed volumes and of signed areas."""
@@ -149,20 +163,20 @@ def _segment_meets_triangle(P, a, b, p, q, r, tol, tol2, strict):
     return (s1 >= 0 and s2 >= 0 and s3 >= 0) or (s1 <= 0 and s2 <= 0 and s3 <= 0)
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_same_ray_2d"], cache=True)
 def _same_ray_2d(P, p, a, x, i, j, tol):
     """Rows a and x lie on one ray from row p, in the (i, j) plane."""
     along = (P[a, i] - P[p, i]) * (P[x, i] - P[p, i]) + (P[a, j] - P[p, j]) * (P[x, j] - P[p, j])
     return _sign(_cross2(P, p, a, x, i, j), tol) == 0 and along > 0
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_strictly_between_2d"], cache=True)
 def _strictly_between_2d(P, p, a, x, b, i, j, tol, turn):
     """Row x lies strictly inside the wedge (p; a, b) whose turn from a to b has sign turn."""
     return _sign(_cross2(P, p, a, x, i, j), tol) == turn and _sign(_cross2(P, p, x, b, i, j), tol) == turn
 
 
-@numba.njit(cache=True)
+@numba.njit(_SIGNATURES["_wedges_overlap_2d"], cache=True)
 def _wedges_overlap_2d(P, p, a, b, c, d, i, j, tol):
     """Coplanar wedges (p; a, b) and (p; c, d), each under 180 deg, share more than their apex."""
     ab = _sign(_cross2(P, p, a, b, i, j), tol)
@@ -205,7 +219,8 @@ def _faces_intersect(verts, faces, normal, offset, f, g, length_tol, P):
                 * _plane_side(verts, faces[f, (k0 + 2) % 3], normal, offset, g, length_tol)) > 0:
             return False
     else:  # Möller's rejection: one face strictly on one side of the other's plane
-        for this, other in ((f, g), (g, f)):
+        for side in range(2):
+            this, other = (f, g) if side == 0 else (g, f)
             s0 = _plane_side(verts, faces[other, 0], normal, offset, this, length_tol)
             s1 = _plane_side(verts, faces[other, 1], normal, offset, this, length_tol)
             s2 = _plane_side(verts, faces[other, 2], normal, offset, this, length_tol)
@@ -237,7 +252,9 @@ def _faces_intersect(verts, faces, normal, offset, f, g, length_tol, P):
     if sc == 0 and sd == 0:
         k = _drop_axis(P, 0, 1, 2)
         return _wedges_overlap_2d(P, 0, 1, 2, 4, 5, (k + 1) % 3, (k + 2) % 3, tol2)
-    for first, second, other in ((1, 2, 4), (4, 5, 1)):  # the midpoints of one face's edges at the apex
+    for half in range(2):  # the midpoints of one face's edges at the apex, against the other face
+        first, other = (1, 4) if half == 0 else (4, 1)
+        second = first + 1
         for l in range(3):
             P[6, l] = 0.5 * (P[first, l] + P[0, l])
             P[7, l] = 0.5 * (P[second, l] + P[0, l])
