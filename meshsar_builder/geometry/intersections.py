@@ -183,9 +183,12 @@ def _wedges_overlap_2d(P, p, a, b, c, d, i, j, tol):
     cd = _sign(_cross2(P, p, c, d, i, j), tol)
     if ab == 0 or cd == 0:
         return False
-    if (_strictly_between_2d(P, p, a, c, b, i, j, tol, ab) or _strictly_between_2d(P, p, a, d, b, i, j, tol, ab)
-            or _strictly_between_2d(P, p, c, a, d, i, j, tol, cd) or _strictly_between_2d(P, p, c, b, d, i, j, tol, cd)):
-        return True
+    for x in (c, d):  # an edge of one strictly inside the other wedge
+        if _strictly_between_2d(P, p, a, x, b, i, j, tol, ab):
+            return True
+    for x in (a, b):
+        if _strictly_between_2d(P, p, c, x, d, i, j, tol, cd):
+            return True
     # No edge inside the other wedge: they overlap only if they are the same wedge.
     return ((_same_ray_2d(P, p, a, c, i, j, tol) and _same_ray_2d(P, p, b, d, i, j, tol))
             or (_same_ray_2d(P, p, a, d, i, j, tol) and _same_ray_2d(P, p, b, c, i, j, tol)))
@@ -203,10 +206,10 @@ def _faces_intersect(verts, faces, normal, offset, f, g, length_tol, P):
     and plane offsets; P: (8, 3) scratch, so the pair loop allocates nothing."""
     shared, k0, k1 = 0, 0, 0
     for k in range(3):
-        for l in range(3):
-            if faces[f, k] == faces[g, l]:
+        for j in range(3):
+            if faces[f, k] == faces[g, j]:
                 shared += 1
-                k0, k1 = k, l
+                k0, k1 = k, j
     if shared == 3:
         return True
     if shared == 2:
@@ -229,9 +232,9 @@ def _faces_intersect(verts, faces, normal, offset, f, g, length_tol, P):
     # Rows 0-2: face f, rows 3-5: face g, each rotated so that a shared vertex comes first.
     longest = 0.0
     for k in range(3):
-        for l in range(3):
-            P[k, l] = verts[faces[f, (k0 + k) % 3], l]
-            P[3 + k, l] = verts[faces[g, (k1 + k) % 3], l]
+        for axis in range(3):
+            P[k, axis] = verts[faces[f, (k0 + k) % 3], axis]
+            P[3 + k, axis] = verts[faces[g, (k1 + k) % 3], axis]
     for t in (0, 3):
         for k in range(3):
             e0, e1, e2 = (P[t + (k + 1) % 3, 0] - P[t + k, 0], P[t + (k + 1) % 3, 1] - P[t + k, 1],
@@ -255,9 +258,9 @@ def _faces_intersect(verts, faces, normal, offset, f, g, length_tol, P):
     for half in range(2):  # the midpoints of one face's edges at the apex, against the other face
         first, other = (1, 4) if half == 0 else (4, 1)
         second = first + 1
-        for l in range(3):
-            P[6, l] = 0.5 * (P[first, l] + P[0, l])
-            P[7, l] = 0.5 * (P[second, l] + P[0, l])
+        for axis in range(3):
+            P[6, axis] = 0.5 * (P[first, axis] + P[0, axis])
+            P[7, axis] = 0.5 * (P[second, axis] + P[0, axis])
         if _segment_meets_triangle(P, 6, 7, 0, other, other + 1, tol, tol2, True):
             return True
     return False
