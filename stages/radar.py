@@ -39,11 +39,13 @@ NAME = "radar"
 def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]]:
     """(sample id, mesh path, metadata) of every dataset mesh, in a fixed order."""
     out = []
-    for rec in results.of("ssm").values():
-        for sid, s in rec.get("samples", {}).items():  # the model item's (not a specificity part's)
-            meta = {"source": "+".join(rec["sources"]), "subject": sid, "frame": None, "phase": "",
-                    "provenance": "ssm", "subset": "ssm", "ssm_coeffs": s["coeffs"]}
-            out.append((sid, str(ctx.stage_dir("ssm") / "samples" / f"{sid}.ply"), meta))
+    # The sample parts' samples (not the model's or a specificity part's records), in sample order.
+    drawn = sorted((sid, s, rec["sources"]) for rec in results.of("ssm").values()
+                   for sid, s in rec.get("samples", {}).items())
+    for sid, s, sources in drawn:
+        meta = {"source": "+".join(sources), "subject": sid, "frame": None, "phase": "",
+                "provenance": "ssm", "subset": "ssm", "ssm_coeffs": s["coeffs"]}
+        out.append((sid, str(ctx.stage_dir("ssm") / "samples" / f"{sid}.ply"), meta))
     for name, rec in results.of("sources").items():
         for sid, s in rec.get("shape_samples", {}).items():  # an external shape model's samples
             meta = {"source": name, "subject": sid, "frame": None, "phase": "", "provenance": "shape_model",

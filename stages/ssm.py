@@ -1,19 +1,20 @@
 """Stage `ssm`: the statistical shape model of the registered subjects, and its samples.
 
-Item `model` (every sample depends on the model): Procrustes + PCA over every
-registered subject, `ssm/model.npz` (mean, modes, variances, template faces,
-per-vertex labels) and `ssm/samples/<source>-ssmNNNNN.ply` for `ssm.samples`
-shapes. Items `specificity/<c>` (`ssm.specificity_items` of them, side by side
-with `model`) each build the same model and make every items-th of the
-`ssm.specificity_samples` specificity draws per mode count through the samples'
-own sampler (redraws included), from their own seed: `ssm/specificity/<c>.npz`.
-Once all are done, `ssm/report.json` (the stage's finish) holds compactness,
-generalisation and specificity per number of modes (vertex to vertex) and the
-per-subject registration figures. Each sample is
-drawn from its own seed (recipe seed, stage, sample id), so a sample does not
-change when the sample count does; self-intersecting draws are redrawn and
-counted. The model's frame is the template's (register/template.ply: canonical pose),
-and its modes have a fixed sign, so the order of the subjects changes nothing (version 3).
+Item `model`: Procrustes + PCA over every registered subject, `ssm/model.npz` (mean,
+modes, variances, template faces, per-vertex labels) and the model's compactness and
+generalisation. Items `samples/<c>` (side by side with it) each build the same model and
+draw `ssm.samples_per_item` consecutive samples of the `ssm.samples` shapes:
+`ssm/samples/ssm-NNNNN.ply`. Items `specificity/<c>` (`ssm.specificity_items` of them)
+each build the same model too and make every items-th of the `ssm.specificity_samples`
+specificity draws per mode count through the samples' own sampler (redraws included),
+from their own seed: `ssm/specificity/<c>.npz`. Once all are done, `ssm/report.json`
+(the stage's finish) holds compactness, generalisation and specificity per number of
+modes (vertex to vertex), the samples' redraws and the per-subject registration figures.
+Each sample is drawn from its own seed (recipe seed, stage, sample id), so a sample does
+not change when the sample count or the split into items does; self-intersecting draws
+are redrawn and counted. The model's frame is the template's (register/template.ply:
+canonical pose), and its modes have a fixed sign, so the order of the subjects changes
+nothing (version 3).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from tqdm import tqdm
 
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.ssm import (
@@ -46,10 +48,17 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     params = dataclasses.asdict(ctx.recipe.ssm)
     fits = {i: rec["fit"] | {"subject": rec["subject"], "source": rec["source"]} for i, rec in registered.items()}
     sources = sorted({rec["source"] for rec in registered.values()})
-    model = Item("model", ("model.npz", *(f"samples/{s}.ply" for s in sample_ids(ctx))), inputs=inputs,
-                 params=params, data={"fits": fits, "sources": sources})
-    return [model, *(Item(part, (f"{part}.npz",), inputs=inputs, params=params, data={})
-                     for part in specificity_parts(ctx))]
+    model = Item("model", ("model.npz",), inputs=inputs, params=params, data={"fits": fits})
+    samples = [Item(part, tuple(f"samples/{sid}.ply" for sid in ids), inputs=inputs, params=params,
+                    data={"sources": sources, "samples": ids}) for part, ids in sample_parts(ctx).items()]
+    return [model, *samples, *(Item(part, (f"{part}.npz",), inputs=inputs, params=params, data={})
+                               for part in specificity_parts(ctx))]
+
+
+def sample_parts(ctx: Context) -> dict[str, list[str]]:
+    """Item id -> the consecutive sample ids it draws, ssm.samples_per_item of them."""
+    ids, size = sample_ids(ctx), ctx.recipe.ssm.samples_per_item
+    return {f"samples/{c}": ids[start:start + size] for c, start in enumerate(range(0, len(ids), size))}
 
 
 def specificity_parts(ctx: Context) -> list[str]:
@@ -72,46 +81,48 @@ def _model(ctx: Context, item: Item):
 def run(ctx: Context, item: Item) -> dict:
     params, folder = ctx.recipe.ssm, ctx.stage_dir(NAME)
     model, shapes = _model(ctx, item)
-    if item.id != "model":  # a share of the specificity draws: every items-th draw per mode count
+    if item.id.startswith("specificity/"):  # a share of the specificity draws: every items-th draw per mode count
         part = int(item.id.rsplit("/", 1)[1])
         count = len(range(part, params.specificity_samples, params.specificity_items))
         distances, redraws = specificity_draws(model, shapes, item_rng(ctx.recipe.seed, NAME, item.id), params, count)
         with atomic_path(folder / f"{item.id}.npz") as tmp:
             np.savez(tmp, distances=distances, redraws=redraws)
         return {"specificity_draws": count, "specificity_redraws": redraws}
+    if item.id.startswith("samples/"):
+        samples = {}
+        for sid in tqdm(item.data["samples"], desc=item.id, leave=False, disable=len(item.data["samples"]) < 100):
+            coeffs, verts, n = sample_valid(model, item_rng(ctx.recipe.seed, NAME, sid), params)
+            write_ply(folder / "samples" / f"{sid}.ply", verts, model.faces, model.labels)
+            samples[sid] = {"coeffs": np.round(coeffs, 6).tolist(), "redraws": n}
+        return {"sources": item.data["sources"], "samples": samples,
+                "self_intersection_redraws": sum(s["redraws"] for s in samples.values())}
     save_model(folder / "model.npz", model)
-    samples, redraws = {}, 0
-    for sid in sample_ids(ctx):
-        coeffs, verts, n = sample_valid(model, item_rng(ctx.recipe.seed, NAME, sid), params)
-        write_ply(folder / "samples" / f"{sid}.ply", verts, model.faces, model.labels)
-        samples[sid] = {"coeffs": np.round(coeffs, 6).tolist(), "redraws": n}
-        redraws += n
     report = {
         **model_quality(model, shapes, params),
         "subjects": len(shapes),
         "n_vertices": int(len(model.mean)),
         "total_variance_mm2": model.total_variance,
-        "samples": len(samples),
-        "self_intersection_redraws": redraws,
         "registration": item.data["fits"],
     }
-    return {"sources": item.data["sources"], "samples": samples, "modes": report["modes"],
-            "self_intersection_redraws": redraws, "report": report}
+    return {"modes": report["modes"], "report": report}
 
 
 def finish(ctx: Context, results: Results) -> None:
     """ssm/report.json: the model item's figures and the specificity of every part's draws,
     once all of them are done (a failed part leaves no report)."""
     records = results.of(NAME)
-    parts = specificity_parts(ctx)
-    if "model" not in records or any(part not in records for part in parts):
+    parts, sampled = specificity_parts(ctx), list(sample_parts(ctx))
+    if "model" not in records or any(part not in records for part in parts + sampled):
         return
     folder = ctx.stage_dir(NAME)
     draws = [np.load(folder / f"{part}.npz") for part in parts]
     distances = np.concatenate([d["distances"] for d in draws], axis=1)
     summary = specificity_summary(distances, sum(int(d["redraws"]) for d in draws))
-    write_json(folder / "report.json", {**records["model"]["report"], **summary})
+    samples = {"samples": sum(len(records[part]["samples"]) for part in sampled),
+               "self_intersection_redraws": sum(records[part]["self_intersection_redraws"] for part in sampled)}
+    write_json(folder / "report.json", {**records["model"]["report"], **samples, **summary})
 
 
-# Version 4: the specificity draws in specificity_items parts side by side (each its own seed).
-STAGE = Stage(name=NAME, version=4, plan=plan, run=run, finish=finish)
+# Version 5: the samples in parts of samples_per_item, side by side (v4: the specificity draws in
+# specificity_items parts).
+STAGE = Stage(name=NAME, version=5, plan=plan, run=run, finish=finish)

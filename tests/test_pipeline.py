@@ -60,6 +60,28 @@ def test_every_stage_runs_and_the_dataset_verifies(smoke):
     assert sorted(split["train"] + split["test"]) == sorted(index["samples"])
 
 
+def test_shape_model_samples_drawn_in_parts_are_the_same_bytes(smoke, tmp_path):
+    """The 4 samples in parts of 3 (ssm.samples_per_item): the same files, both parts' redraws
+    in the report, and the registration is not redone."""
+    import shutil
+
+    out, _ = smoke
+    copy = tmp_path / "parts"
+    shutil.copytree(out, copy)
+    recipe = tmp_path / "smoke.toml"
+    recipe.write_text((MANIFESTS / "smoke.toml").read_text().replace("[ssm]\n", "[ssm]\nsamples_per_item = 3\n"))
+    results = build(R.load(recipe), copy, workers=2, until="ssm")
+    ran = {r["stage"]: r["ran"] for r in results.summary}
+    assert results.failures == [] and ran["ssm"] > 0 and ran["remesh"] == ran["register"] == 0
+    parts = sorted(p.name for p in (copy / "ssm" / "samples").glob("*.json"))
+    assert parts == ["0.json", "1.json"]
+    assert [len(read_json(copy / "ssm" / "samples" / p)["samples"]) for p in parts] == [3, 1]
+    for ply in (out / "ssm" / "samples").glob("*.ply"):
+        assert (copy / "ssm" / "samples" / ply.name).read_bytes() == ply.read_bytes(), ply.name
+    report, before = read_json(copy / "ssm" / "report.json"), read_json(out / "ssm" / "report.json")
+    assert report["samples"] == 4 and report["self_intersection_redraws"] == before["self_intersection_redraws"]
+
+
 def test_reader_returns_the_meshes_and_images(smoke):
     out, _ = smoke
     ds = MeshSARDataset(out, split=None)

@@ -229,6 +229,7 @@ def test_specificity_is_the_naive_nearest_training_distance_of_the_samplers_draw
         ("procrustes_iterations", 0),
         ("specificity_samples", 0),
         ("specificity_items", 0),
+        ("samples_per_item", 0),
     ],
 )
 def test_params_reject_bad_values_naming_the_field(field, value):

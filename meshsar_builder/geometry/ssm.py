@@ -29,6 +29,8 @@ class SSMParams:
     procrustes_iterations: most generalised Procrustes iterations (stops earlier on convergence).
     specificity_samples: random shapes per number of modes for the specificity measure.
     specificity_items: items those draws are split into (stages/ssm.py), run side by side.
+    samples_per_item: the dataset's samples are drawn in items of this many (stages/ssm.py),
+        run side by side; each sample has its own seed, so the split changes no sample.
     """
 
     samples: int = 48
@@ -38,6 +40,7 @@ class SSMParams:
     procrustes_iterations: int = 20
     specificity_samples: int = 1000
     specificity_items: int = 4
+    samples_per_item: int = 250
 
     def __post_init__(self) -> None:
         if self.samples < 1:
@@ -54,6 +57,8 @@ class SSMParams:
             raise ValueError(f"specificity_samples: must be >= 1, got {self.specificity_samples}")
         if not 1 <= self.specificity_items <= self.specificity_samples:
             raise ValueError(f"specificity_items: must be in [1, specificity_samples], got {self.specificity_items}")
+        if self.samples_per_item < 1:
+            raise ValueError(f"samples_per_item: must be >= 1, got {self.samples_per_item}")
 
 
 @dataclass(frozen=True)
