@@ -294,8 +294,9 @@ def _at_most(measured: float, target: float) -> dict:
 
 def stage_targets(build_dir: Path, stages: dict, recipe) -> dict:
     """Issue 32's budgets on a built folder: the median remesh, register, frame fit and radar
-    view item (ITEM_TARGETS; the worst beside it), and the ssm stage's wall where it made >= 1,000 specificity draws per
-    mode count; each {target, measured, met}, for what the build has."""
+    view item (ITEM_TARGETS; the worst beside it), and the ssm stage's wall where it made
+    >= 1,000 specificity draws per mode count; each {target, measured, met}, for what the
+    build has."""
     def sidecars(stage: str) -> list[dict]:
         return [rec for rec in map(read_json, sorted((build_dir / stage).rglob("*.json")))
                 if rec.get("stage") == stage and "item" in rec]
