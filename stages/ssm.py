@@ -81,7 +81,7 @@ def _model(ctx: Context, item: Item):
 def run(ctx: Context, item: Item) -> dict:
     params, folder = ctx.recipe.ssm, ctx.stage_dir(NAME)
     model, shapes = _model(ctx, item)
-    if item.id.startswith("specificity/"):  # a share of the specificity draws: every items-th draw per mode count
+    if item.id.startswith("specificity/"):  # a share of the draws: every items-th draw per mode count
         part = int(item.id.rsplit("/", 1)[1])
         count = len(range(part, params.specificity_samples, params.specificity_items))
         distances, redraws = specificity_draws(model, shapes, item_rng(ctx.recipe.seed, NAME, item.id), params, count)
@@ -94,8 +94,7 @@ def run(ctx: Context, item: Item) -> dict:
             coeffs, verts, n = sample_valid(model, item_rng(ctx.recipe.seed, NAME, sid), params)
             write_ply(folder / "samples" / f"{sid}.ply", verts, model.faces, model.labels)
             samples[sid] = {"coeffs": np.round(coeffs, 6).tolist(), "redraws": n}
-        return {"sources": item.data["sources"], "samples": samples,
-                "self_intersection_redraws": sum(s["redraws"] for s in samples.values())}
+        return {"sources": item.data["sources"], "samples": samples}
     save_model(folder / "model.npz", model)
     report = {
         **model_quality(model, shapes, params),
@@ -118,8 +117,8 @@ def finish(ctx: Context, results: Results) -> None:
     draws = [np.load(folder / f"{part}.npz") for part in parts]
     distances = np.concatenate([d["distances"] for d in draws], axis=1)
     summary = specificity_summary(distances, sum(int(d["redraws"]) for d in draws))
-    samples = {"samples": sum(len(records[part]["samples"]) for part in sampled),
-               "self_intersection_redraws": sum(records[part]["self_intersection_redraws"] for part in sampled)}
+    drawn = [s for part in sampled for s in records[part]["samples"].values()]
+    samples = {"samples": len(drawn), "self_intersection_redraws": sum(s["redraws"] for s in drawn)}
     write_json(folder / "report.json", {**records["model"]["report"], **samples, **summary})
 
 
