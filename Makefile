@@ -58,6 +58,9 @@ train: $(STAMP)
 
 SEEDS ?= 0,1,2
 ABLATE_EPOCHS ?=
+# Radar ablation runs trained at once (they share the cores) and its folder (default OUT/ablations/...).
+JOBS       ?= 2
+ABLATE_OUT ?=
 
 # The radar-loss / pooling / view ablation over seeds on OUT (meshsar ablate); ABLATE_EPOCHS shortens every run.
 ablate: $(STAMP)
@@ -65,4 +68,4 @@ ablate: $(STAMP)
 
 # The radar loss on against off (meshsar ablate --radar): weight chosen on validation, 5 seeds, paired test.
 ablate-radar: $(STAMP)
-	$(VENV)/bin/meshsar ablate $(CONFIG) --data $(OUT) --split seed-$(SEED) --radar $(if $(ABLATE_EPOCHS),--epochs $(ABLATE_EPOCHS))
+	$(VENV)/bin/meshsar ablate $(CONFIG) --data $(OUT) --split seed-$(SEED) --radar --jobs $(JOBS) $(if $(ABLATE_EPOCHS),--epochs $(ABLATE_EPOCHS)) $(if $(ABLATE_OUT),--out $(ABLATE_OUT))

@@ -121,7 +121,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     refuse_if_locked(args.data)
     if args.radar:
         print(radar_markdown(radar_ablation(args.config, args.data, args.split, seeds, weights, args.epochs,
-                                            args.device, args.out, args.samples)))
+                                            args.device, args.out, args.samples, jobs=args.jobs)))
         return 0
     variants = tuple(args.variants.split(",")) if args.variants else VARIANTS
     print(markdown(ablate(args.config, args.data, args.split, seeds, variants, args.epochs, args.device, args.out,
@@ -230,6 +230,8 @@ def parser() -> argparse.ArgumentParser:
     ab.add_argument("--device", choices=["cpu", "cuda", "auto"], help="override [run] device")
     ab.add_argument("--samples", type=int, default=20_000,
                     help="surface points per mesh for the distance metrics (default 20000, as evaluate)")
+    ab.add_argument("--jobs", type=int, default=1,
+                    help="with --radar: runs trained at once, sharing the cores (default 1)")
     ab.add_argument("--out", help="folder (default DATA/ablations/<config name>-<split>[-e<epochs>])")
     ab.set_defaults(func=cmd_ablate)
     from meshsar_builder.bench.suite import PARTS

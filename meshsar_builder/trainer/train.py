@@ -362,12 +362,35 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
     return torch.load(path, map_location=device, weights_only=True)
 
 
-def same_run(stored_text: str, config: TrainConfig) -> bool:
+def same_run(stored_text: str, config: TrainConfig, until: int | None = None) -> bool:
     """Whether a checkpoint's config (its TOML text) describes the same run as `config`: equal in every
-    value but [run] device, since where a run trains is not part of what it is (it resumes elsewhere)."""
+    value but [run] device, since where a run trains is not part of what it is (it resumes elsewhere).
+
+    until: only epochs 0..until-1 must train alike, so the name and the radar weight may differ
+    where radar_weight_at agrees on all of them (the warm-up that a radar ablation's arms share)."""
     stored = parse_config(stored_text)
-    return dataclasses.replace(stored, run=dataclasses.replace(stored.run, device=config.run.device), text="") == \
-        dataclasses.replace(config, text="")
+    stored = dataclasses.replace(stored, run=dataclasses.replace(stored.run, device=config.run.device), text="")
+    if until is not None and all(radar_weight_at(stored, e) == radar_weight_at(config, e) for e in range(until)):
+        stored = dataclasses.replace(stored, name=config.name,
+                                     radar_loss=dataclasses.replace(stored.radar_loss, weight=config.radar_loss.weight))
+    return stored == dataclasses.replace(config, text="")
+
+
+def branch_run(source: Path, run: Path, config: TrainConfig) -> None:
+    """Start `run`, a run of `config`, from the checkpoint in run folder `source`, which trained as
+    `config` would up to its epoch (same_run with until); its log and best.pt come along. A run that
+    has a checkpoint of its own is left as it is."""
+    if (run / CHECKPOINT).exists():
+        return
+    state = load_checkpoint(source / CHECKPOINT)
+    if not same_run(state["config_text"], config, until=state["epoch"]):
+        raise InputError(f"{source}: its checkpoint (epoch {state['epoch']}) did not train as {config.name} "
+                         f"would up to there; {run} cannot start from it")
+    write_bytes(run / LOG, (source / LOG).read_bytes())
+    # The checkpoint last: its presence marks a finished branch.
+    for name in (BEST, CHECKPOINT):
+        if (source / name).exists():
+            save_checkpoint(run / name, {**load_checkpoint(source / name), "config_text": config.text})
 
 
 def build_model(config: TrainConfig, info: dict) -> SAR2Mesh | ImplicitSAR:
@@ -479,12 +502,14 @@ class TrainResult:
 
 
 def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, split: str = "seed-0",
-          out: str | os.PathLike | None = None, progress: bool = True, device: str | None = None) -> TrainResult:
+          out: str | os.PathLike | None = None, progress: bool = True, device: str | None = None,
+          until: int | None = None) -> TrainResult:
     """Train (or resume) a run; returns its folder, model and epoch log.
 
     data: a build folder with index.json and splits/; split: seed-<N>; out: the run
     folder (default DATA/runs/<config name>-<split>); device: overrides [run] device
-    (where a run trains is not part of what it is: a run resumes on another device).
+    (where a run trains is not part of what it is: a run resumes on another device);
+    until: stop after this many epochs with a checkpoint there (the run resumes later).
     """
     config = config if isinstance(config, TrainConfig) else load_config(config)
     if device is not None:
@@ -520,6 +545,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         optimizer.load_state_dict(state["optimizer"])
         scaler.load_state_dict(state["scaler"])
         start, best_dice = state["epoch"], state.get("best_dice", -1.0)
+    end = config.optim.epochs if until is None else min(until, config.optim.epochs)
     log = [row for row in read_log(run / LOG) if row["epoch"] < start]
     columns = log_columns(config)
     board = tensorboard_writer(run) if rank == 0 else None
@@ -529,7 +555,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         if not first:
             write_bytes(run / "config.toml", config.text.encode("utf-8"))
         devices = first.get("devices", [])
-        if start < config.optim.epochs:
+        if start < end:
             devices = [*devices, f"{device} ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else "cpu"]
         write_json(run / "run.json", {**info, "config": first.get("config", config.as_dict()), "world_size": world,
                                       "devices": list(dict.fromkeys(devices)),
@@ -540,9 +566,9 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
         model, device_ids=[device.index] if device.type == "cuda" else None, find_unused_parameters=bool(unused),
     ) if world > 1 else model
     autocast = autocast_factory(device, amp)
-    bar = tqdm(total=config.optim.epochs, initial=start, desc=f"train {config.name}", unit="epoch",
+    bar = tqdm(total=end, initial=min(start, end), desc=f"train {config.name}", unit="epoch",
                disable=not progress or rank != 0)
-    for epoch in range(start, config.optim.epochs):
+    for epoch in range(start, end):
         began = time.perf_counter()
         batches = epoch_batches(len(train_set), config.data.batch_size, world, rank, config.seed, epoch)
         loader = DataLoader(train_set, batch_sampler=[b for b, _ in batches], collate_fn=collate_meshes,
@@ -587,7 +613,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
             best_dice = val["dice"]
             save_checkpoint(run / BEST, {"epoch": done, "model": model.state_dict(), "config_text": config.text,
                                          "info": info, "val": val})
-        if done % config.run.checkpoint_every == 0 or done == config.optim.epochs:
+        if done % config.run.checkpoint_every == 0 or done == end:
             save_checkpoint(run / CHECKPOINT, {
                 "epoch": done, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                 "scaler": scaler.state_dict(), "config_text": config.text, "info": info, "best_dice": best_dice,
