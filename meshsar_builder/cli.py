@@ -103,6 +103,28 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_fit(args: argparse.Namespace) -> int:
+    from meshsar_builder.pipeline.io import write_bytes
+    from meshsar_builder.trainer.fit import FitParams, fit_split, sweep_table
+
+    try:
+        modes = [int(k) for k in args.modes.split(",")]
+        noises = ["build" if n == "build" else None if n == "off" else float(n) for n in args.snr_db.split(",")]
+    except ValueError:
+        print(f"error: --modes takes comma-separated integers and --snr-db numbers, build or off; got "
+              f"{args.modes!r} and {args.snr_db!r}", file=sys.stderr)
+        return 2
+    refuse_if_locked(args.data)
+    for k in modes:
+        for noise in noises:
+            fit_split(args.data, args.split, FitParams(modes=k, iterations=args.iterations), snr_db=noise, run=args.run,
+                      samples=args.samples, limit=args.limit)
+    table = sweep_table(args.data, args.split)
+    write_bytes(Path(args.data) / "fits" / f"{args.split}.md", table.encode())
+    print(table)
+    return 0
+
+
 def cmd_ablate(args: argparse.Namespace) -> int:
     from meshsar_builder.trainer.ablate import (RADAR_SEEDS, RADAR_WEIGHTS, VARIANTS, ablate, markdown,
                                                 radar_ablation, radar_markdown)
@@ -203,6 +225,21 @@ def parser() -> argparse.ArgumentParser:
                    help="another run evaluated beside it in the same table, e.g. an implicit baseline (repeatable)")
     add_run_options(e)
     e.set_defaults(func=cmd_evaluate)
+    fi = sub.add_parser("fit", help="fit the build's shape model to each test sample's recorded echo alone "
+                                    "(no network): metrics against the truth",
+                        epilog="docs: docs/trainer.md (fitting the shape model to the radar)")
+    fi.add_argument("data", help="built dataset folder")
+    fi.add_argument("--split", default="seed-0")
+    fi.add_argument("--modes", default="7", help="comma-separated numbers of leading modes fitted (default 7)")
+    fi.add_argument("--snr-db", default="build",
+                    help="comma-separated noise levels: build (the recorded echo), an image SNR in dB (the noise "
+                         "redrawn from the same seeds at that level) or off (default build)")
+    fi.add_argument("--iterations", type=int, default=150, help="Adam steps per sample (default 150)")
+    fi.add_argument("--run", help="a trained run whose evaluation on the split is tabled beside the fit")
+    fi.add_argument("--limit", type=int, help="fit the first N shape-model test samples only")
+    fi.add_argument("--samples", type=int, default=20_000,
+                    help="surface points per mesh and direction for ASSD / HD / HD95 (default 20000)")
+    fi.set_defaults(func=cmd_fit)
     pr = sub.add_parser("predict", help="meshes (PLY) and a gallery from a trained run, for a split or an images file",
                         epilog="docs: docs/trainer.md (prediction)")
     pr.add_argument("run", help="run folder")

@@ -1,0 +1,231 @@
+"""`meshsar fit DATA --split seed-0`: the build's shape model fitted to each test sample's radar alone.
+
+Analysis by synthesis, no network: the shape model (DATA/ssm/model.npz) with its K leading
+modes, placed by a translation, starts at its mean on the heart-frame origin and moves so
+that the focused radar loss's image-domain model of it (radar/focused.py, as the trainer
+uses it) matches the focused recorded echo. The shape model keeps the shape smooth, which
+the per-vertex radar gradient is not.
+
+Only what a scanner gives enters the fit: the recorded echo on the loss grid (the build's
+echo_clean plus its noise, regenerated as the build drew it; the fit never separates the
+two) and the radar parameters with the receiver's noise power (noise_sigma, which debiases
+the target's power). With `snr_db` the noise is redrawn from the same seed at that image SNR
+(sigma scaled from the build's image_snr_db); "off" fits the noise-free echo, the known-truth
+check. The truth is read only to score the fit afterwards.
+
+A whole-heart model fits whole-heart samples only: the test samples fitted are the build's
+own shape-model samples (provenance "ssm"), drawn from the very model being fitted, so there
+is no model error (an upper bound on what the radar gives).
+
+Writes DATA/fits/<split>-k<K>-<snr>/: fits.json (per sample: the fitted and true
+standardised coefficients, the translation, the loss at the start, the end and the truth,
+the per-vertex correspondence error, seconds), metrics.csv and summary.json / summary.md
+as `meshsar evaluate` writes them (methods `radar_fit`, `ssm_mean`: the start, and the rows
+of a trained run's evaluation on the same samples when `run` is given).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from meshsar_builder.dataset.readers import MeshSARDataset
+from meshsar_builder.dataset.shards import loss_grid_indices, read_index
+from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
+from meshsar_builder.radar.focused import FocusedParams, focused_loss
+from meshsar_builder.radar.noise import recorded_echo
+from meshsar_builder.trainer.config import split_seed
+from meshsar_builder.trainer.evaluate import BASELINES, markdown, summarise, write_csv
+from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics
+from meshsar_builder.trainer.train import DatasetGeometry
+
+
+@dataclasses.dataclass(frozen=True)
+class FitParams:
+    """How the fit moves: Adam on the standardised coefficients (coefficient / mode sd) and the
+    translation (mm), each with its own step, for a fixed number of iterations."""
+
+    modes: int = 7
+    iterations: int = 150
+    coefficient_lr: float = 0.05
+    translation_lr_mm: float = 0.5
+    focused: FocusedParams = dataclasses.field(default_factory=FocusedParams)
+
+
+def shape_model_tensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
+    """The build's shape model as float64 tensors: mean (n, 3), modes (K, n, 3), sd (K,), faces (m, 3) int64."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no shape model; the build has no ssm stage output")
+    with np.load(path) as model:
+        return {"mean": torch.from_numpy(model["mean"].astype(np.float64)),
+                "modes": torch.from_numpy(model["modes"].astype(np.float64)),
+                "sd": torch.from_numpy(np.sqrt(model["variances"].astype(np.float64))),
+                "faces": torch.from_numpy(model["faces"].astype(np.int64))}
+
+
+def fit_shape(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, params: FitParams) -> dict:
+    """Fit the model's `params.modes` leading modes and a translation to focused targets.
+
+    model: shape_model_tensors; targets (V, S, H, W) float, setup.target of the recorded
+    echo of each view in setup.views. Starts at the mean, centred on the origin (its bounding
+    box centre), as the heart frame centres every sample. Returns z (K,) the standardised
+    coefficients, translation (3,) mm, verts (n, 3) float64 mm, losses (iterations + 1,) the
+    loss before each step and after the last.
+    """
+    k = params.modes
+    if not 0 <= k <= model["modes"].shape[0]:
+        raise InputError(f"fit: modes must be 0..{model['modes'].shape[0]} (the model's), got {k}")
+    mean, modes, sd, faces = model["mean"], model["modes"][:k], model["sd"][:k], model["faces"]
+    z = torch.zeros(k, dtype=torch.float64, requires_grad=True)
+    translation = (-(mean.max(0).values + mean.min(0).values) / 2).requires_grad_(True)
+    optimiser = torch.optim.Adam([{"params": [z], "lr": params.coefficient_lr},
+                                  {"params": [translation], "lr": params.translation_lr_mm}])
+
+    def verts() -> torch.Tensor:
+        return mean + torch.einsum("k,kvc->vc", z * sd, modes) + translation  # (n, 3)
+
+    losses = []
+    for _ in range(params.iterations):
+        optimiser.zero_grad()
+        loss = focused_loss(verts()[None].float(), faces, targets[None], setup)
+        loss.backward()
+        optimiser.step()
+        losses.append(loss.item())
+    with torch.no_grad():
+        final = verts()
+        losses.append(float(focused_loss(final[None].float(), faces, targets[None], setup)))
+    return {"z": z.detach().numpy(), "translation": translation.detach().numpy(), "verts": final.numpy(),
+            "losses": np.asarray(losses)}
+
+
+def recorded_loss_echo_at(sample: dict, index: dict, scale: float) -> np.ndarray:
+    """(V, Lx, Ly, Lf) complex64: the recorded echo on the loss grid with the build's noise scaled
+    by `scale` (1: the build's recording bit for bit; 0: noise-free), from the same seeds."""
+    full, keep = loss_grid_indices(index)
+    return np.stack([recorded_echo(clean, seed, float(sigma) * scale, full, keep)
+                     for clean, seed, sigma in zip(sample["echo_clean"].numpy(), sample["noise_seed"],
+                                                   sample["noise_sigma"].numpy())])
+
+
+def noise_scale(index: dict, snr_db: float | None) -> float:
+    """The factor on the build's noise sigma that gives image SNR `snr_db` (None: noise off)."""
+    if snr_db is None:
+        return 0.0
+    return 10 ** ((float(index["radar"]["image_snr_db"]) - snr_db) / 20)
+
+
+def fit_split(data: str | os.PathLike, split: str = "seed-0", params: FitParams = FitParams(),
+              snr_db: float | None | str = "build", run: str | os.PathLike | None = None, samples: int = 20_000,
+              limit: int | None = None, out: str | os.PathLike | None = None, progress: bool = True) -> dict:
+    """Fit every shape-model test sample of `split` (module docstring); returns the summary.
+
+    snr_db: "build" (the recorded echo as built), a number (the noise redrawn at that image
+    SNR) or None (noise off); run: a trained run whose evaluation on this split
+    (RUN/eval-<split>/metrics.csv) adds its rows for the same samples; limit: the first
+    `limit` samples only.
+    """
+    data = Path(data)
+    index = read_index(data)
+    if index.get("loss_grid") is None:
+        raise InputError(f"{data}: has no loss grid (shards format 2); rebuild it to fit the radar")
+    model = shape_model_tensors(data / "ssm" / "model.npz")
+    scale = 1.0 if snr_db == "build" else noise_scale(index, snr_db)
+    label = "build" if snr_db == "build" else ("off" if snr_db is None else f"{snr_db:g}db")
+    out = Path(out) if out is not None else data / "fits" / f"{split}-k{params.modes}-{label}"
+    network = _run_rows(Path(run), split) if run is not None else {}
+    geometry = DatasetGeometry.from_index(index, ())
+    setup = geometry.focused_setup(params.focused)
+    dataset = MeshSARDataset(data, "test", seed=split_seed(split))
+    chosen = [i for i in range(len(dataset)) if dataset[i]["meta"].get("provenance") == "ssm"][:limit]
+    if not chosen:
+        raise InputError(f"{data}: the test part of {split} has no shape-model samples to fit")
+    # Fits already made with these settings are kept (a rerun adds a run's rows or resumes).
+    previous = read_json(out / "fits.json") if (out / "fits.json").exists() else {}
+    record = {"data": str(data), "split": split, "snr_db": label, "params": _plain(params)}
+    kept = previous.get("samples", {}) if all(previous.get(k) == v for k, v in record.items()) else {}
+    rows, fits = [], {}
+    for i in tqdm(chosen, desc=f"fit k={params.modes} {label}", disable=not progress):
+        sample = dataset[i]
+        sid = sample["sample_id"]
+        fits[sid] = kept.get(sid) or _fit_sample(sample, i, model, index, scale, setup, params, samples)
+        rows += fits[sid]["rows"] + network.get(sid, [])
+        write_json(out / "fits.json", {**record, "samples": fits})
+    summary = summarise(rows)
+    write_csv(out / "metrics.csv", rows)
+    write_json(out / "summary.json", summary)
+    title = (f"# Shape model fitted to the radar alone: {data.name} ({split}, test, shape-model samples; "
+             f"{params.modes} modes, noise {label})\n\n")
+    write_bytes(out / "summary.md", (title + markdown(summary)).encode())
+    return summary
+
+
+def _fit_sample(sample: dict, seed: int, model: dict, index: dict, scale: float, setup, params: FitParams,
+                samples: int) -> dict:
+    """One test sample's fit record: coefficients, translation, losses, correspondence, seconds and
+    its metric rows (`radar_fit` and the start, `ssm_mean`); the truth enters only the scores."""
+    echo = recorded_loss_echo_at(sample, index, scale)
+    targets = torch.from_numpy(setup.target(echo, sample["noise_sigma"].numpy() * scale))  # (V, S, H, W)
+    began = time.perf_counter()
+    result = fit_shape(model, targets, setup, params)
+    seconds = time.perf_counter() - began
+    start = fit_shape(model, targets, setup, dataclasses.replace(params, iterations=0))
+    gt = (sample["verts"].double().numpy(), sample["faces"].numpy())
+    k = params.modes
+    rows = [{"sample_id": sample["sample_id"], "source": sample["meta"].get("source", ""),
+             "subset": sample["meta"].get("subset", ""), "method": method,
+             **mesh_metrics(verts, model["faces"].numpy(), *gt, samples=samples, seed=seed)}
+            for method, verts in (("radar_fit", result["verts"]), ("ssm_mean", start["verts"]))]
+    truth = focused_loss(torch.from_numpy(gt[0])[None].float(), torch.from_numpy(gt[1]), targets[None], setup)
+    return {
+        "z": result["z"].tolist(),
+        "z_true": (np.asarray(sample["meta"]["ssm_coeffs"][:k]) / model["sd"][:k].numpy()).tolist(),
+        "translation_mm": result["translation"].tolist(),
+        "loss_start": float(result["losses"][0]), "loss_end": float(result["losses"][-1]), "loss_truth": float(truth),
+        # the samples share the model's topology: vertex i of the fit against vertex i of the truth
+        "correspondence_mm": float(np.linalg.norm(result["verts"] - gt[0], axis=1).mean()),
+        "seconds": seconds, "rows": rows,
+    }
+
+
+def _run_rows(run: Path, split: str) -> dict[str, list[dict]]:
+    """sample id -> a run's evaluation rows (its own methods, not the baselines), COLUMNS as floats."""
+    table = run / f"eval-{split}" / "metrics.csv"
+    if not table.exists():
+        raise InputError(f"{table}: not found; run `meshsar evaluate {run} --split {split}` first")
+    out: dict[str, list[dict]] = {}
+    with open(table, newline="", encoding="utf-8") as f:
+        for row in csv.DictReader(f):
+            if row["method"] not in BASELINES:
+                out.setdefault(row["sample_id"], []).append({**row, **{c: float(row[c]) for c in COLUMNS}})
+    return out
+
+
+def _plain(params: FitParams) -> dict:
+    return {**dataclasses.asdict(params), "focused": dataclasses.asdict(params.focused)}
+
+
+def sweep_table(data: str | os.PathLike, split: str = "seed-0") -> str:
+    """A markdown table of every fit folder of `split` under DATA/fits: mean ± std of ASSD, HD and Dice."""
+    lines = ["| modes | noise | n | ASSD mm (fit) | ASSD mm (mean) | HD mm (fit) | Dice (fit) | correspondence mm |",
+             "|---|---|---|---|---|---|---|---|"]
+    for folder in sorted((Path(data) / "fits").glob(f"{split}-k*")):
+        if not (folder / "summary.json").exists():
+            continue
+        summary, fits = read_json(folder / "summary.json")["all"], read_json(folder / "fits.json")
+        fit, mean = summary["radar_fit"], summary["ssm_mean"]
+        corr = [s["correspondence_mm"] for s in fits["samples"].values() if s["correspondence_mm"] is not None]
+        lines.append(f"| {fits['params']['modes']} | {fits['snr_db']} | {fit['assd_mm'][2]} | "
+                     f"{fit['assd_mm'][0]:.2f} ± {fit['assd_mm'][1]:.2f} | {mean['assd_mm'][0]:.2f} | "
+                     f"{fit['hd_mm'][0]:.2f} ± {fit['hd_mm'][1]:.2f} | {fit['dice'][0]:.4f} | "
+                     f"{np.mean(corr) if corr else math.nan:.2f} |")
+    return "\n".join(lines) + "\n"
