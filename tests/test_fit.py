@@ -7,18 +7,28 @@ parameterisation); against the production echo of that truth (the physics) it la
 closer to the truth than its start.
 """
 
+import csv
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
 
 import meshsar_builder.radar.params as RP  # noqa: E402
+import meshsar_builder.trainer.fit as F  # noqa: E402
+from meshsar_builder.dataset.shards import INDEX_NAME, Sample, build_index, write_shard  # noqa: E402
+from meshsar_builder.dataset.splits import make_split, write_split  # noqa: E402
 from meshsar_builder.pipeline.errors import InputError  # noqa: E402
+from meshsar_builder.pipeline.io import read_json, sha256_file, write_json  # noqa: E402
+from meshsar_builder.radar.differentiable import echo_torch  # noqa: E402
 from meshsar_builder.radar.focused import FocusedParams, FocusedSetup  # noqa: E402
-from meshsar_builder.trainer.fit import FitParams, fit_shape, noise_scale, shape_model_tensors  # noqa: E402
+from meshsar_builder.trainer.fit import FitParams, fit_shape, fit_split, noise_scale, shape_model_tensors  # noqa: E402
+from meshsar_builder.trainer.metrics import COLUMNS  # noqa: E402
 from meshsar_builder.trainer.model import icosphere_levels  # noqa: E402
 
 from .test_focused_loss import _quiet  # noqa: E402
+from .test_train import TINY_IMAGES, TINY_RADAR  # noqa: E402
 
 AXES_MM = np.array([50.0, 40.0, 35.0])
 TRUE_Z = np.array([1.2, -0.8])
@@ -93,3 +103,114 @@ def test_noise_scale_gives_the_asked_image_snr_and_a_missing_model_is_named(tmp_
     assert noise_scale(index, 20.0) == pytest.approx(10 ** 0.5)  # 10 dB less SNR: sigma x sqrt(10)
     with pytest.raises(InputError, match="model.npz: no shape model"):
         shape_model_tensors(tmp_path / "ssm" / "model.npz")
+
+
+def shape_model_build(root: Path, n: int = 6) -> Path:
+    """A tiny build of a 1-mode shape model (a sphere of radius 40 mm that grows), its samples
+    (provenance "ssm", their coefficients in meta, each centred as the heart frame centres it)
+    and one sample of another source; noisy echoes on the tiny radar's loss grid."""
+    torch.set_num_threads(1)
+    verts, faces, _ = icosphere_levels(2)
+    mean = verts[2] * 40.0
+    mode = mean / np.linalg.norm(mean)
+    sd = 0.1 * np.linalg.norm(mean)
+    (root / "ssm").mkdir(parents=True)
+    np.savez(root / "ssm" / "model.npz", mean=mean, modes=mode[None], variances=np.array([sd * sd]),
+             faces=faces[2], total_variance=np.array(sd * sd), labels=np.zeros(len(mean), np.uint8))
+    grid, loss = RP.echo_grid(TINY_RADAR), RP.loss_grid(TINY_RADAR)
+    metadata = RP.index_metadata(TINY_RADAR, TINY_IMAGES)
+    rng = np.random.default_rng(1)
+    samples = []
+    for i in range(n):
+        coeff = float(rng.uniform(-2, 2) * sd)
+        v = (mean + coeff * mode).astype(np.float32)
+        v -= (v.max(0) + v.min(0)) / 2
+        tv, tf = torch.from_numpy(v), torch.from_numpy(faces[2].astype(np.int64))
+        echo = np.stack([echo_torch(tv, tf, grid["positions_mm"][w], grid["frequencies_hz"], TINY_RADAR)
+                         .numpy().reshape(4, 4, 4) for w in TINY_RADAR.views])
+        clean = np.stack([echo_torch(tv, tf, loss["positions_mm"][w], loss["frequencies_hz"], TINY_RADAR)
+                          .numpy().reshape(8, 8, 2) for w in TINY_RADAR.views]).astype(np.complex64)
+        ssm = i != 0
+        samples.append(Sample(
+            sample_id=f"s{i}", verts=v, faces=faces[2], vert_labels=np.zeros(len(v), np.uint8),
+            sar=rng.random((3, 2, 32, 32)).astype(np.float16), echo=echo, echo_clean=clean,
+            noise_seed=np.arange(3 * i, 3 * i + 3, dtype=np.uint64),
+            noise_sigma=np.full(3, 0.05 * float(np.abs(clean).max())), center_mm=np.zeros(3, np.float32),
+            meta={"source": "toy", "subject": f"subj{i}", "subset": "ssm" if ssm else "direct",
+                  "provenance": "ssm" if ssm else "direct", **({"ssm_coeffs": [coeff]} if ssm else {})}))
+    write_shard(root / "shards/shard-00000.npz", samples)
+    shards = [{"file": "shards/shard-00000.npz", "n": n, "sha256": sha256_file(root / "shards/shard-00000.npz"),
+               "sample_ids": [s.sample_id for s in samples]}]
+    index = build_index(recipe="tiny", recipe_sha256="0" * 64, code_version="test", metadata=metadata,
+                        shard_size=n, shards=shards, metas={s.sample_id: s.meta for s in samples})
+    write_json(root / INDEX_NAME, index)
+    # every sample in test: the fit reads the test part only
+    write_split(root, make_split(index, 0, {"train": 0.0, "test": 1.0}, "sample"))
+    return root
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    data = shape_model_build(tmp_path_factory.mktemp("fit"))
+    summary = fit_split(data, params=FitParams(modes=1, iterations=40), samples=500, progress=False)
+    return data, summary
+
+
+def test_a_split_fits_its_shape_model_samples_only_and_writes_evaluate_tables(fitted):
+    data, summary = fitted
+    out = data / "fits" / "seed-0-k1-build"
+    fits = read_json(out / "fits.json")
+    assert sorted(fits["samples"]) == [f"s{i}" for i in range(1, 6)]  # s0 is not a shape-model sample
+    sd = float(np.sqrt(np.load(data / "ssm" / "model.npz")["variances"][0]))
+    test = F.MeshSARDataset(data, "test", seed=0)
+    coeffs = {s["sample_id"]: s["meta"]["ssm_coeffs"][0] for s in (test[i] for i in range(len(test))) if s["meta"]
+              .get("ssm_coeffs")}
+    for sid, record in fits["samples"].items():
+        assert record["z_true"] == pytest.approx([coeffs[sid] / sd])
+        assert record["loss_end"] <= record["loss_start"]
+    with open(out / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted((r["sample_id"], r["method"]) for r in rows) == sorted(
+        (f"s{i}", m) for i in range(1, 6) for m in ("radar_fit", "ssm_mean"))
+    assert summary["all"]["radar_fit"]["assd_mm"][2] == 5
+    assert "| radar_fit |" in (out / "summary.md").read_text()
+
+
+def test_a_rerun_refits_nothing_and_adds_a_runs_rows(fitted, tmp_path, monkeypatch):
+    data, summary = fitted
+    run = tmp_path / "run"
+    (run / "eval-seed-0").mkdir(parents=True)
+    with open(run / "eval-seed-0" / "metrics.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["sample_id", "source", "subset", "method", *COLUMNS])
+        writer.writeheader()
+        for i in range(6):
+            writer.writerow({"sample_id": f"s{i}", "source": "toy", "subset": "", "method": "mesh",
+                             **{c: 0.5 for c in COLUMNS}})
+            writer.writerow({"sample_id": f"s{i}", "source": "toy", "subset": "", "method": "mean_shape",
+                             **{c: 9.0 for c in COLUMNS}})
+    monkeypatch.setattr(F, "fit_shape", lambda *a, **k: pytest.fail("refitted"))
+    again = fit_split(data, params=FitParams(modes=1, iterations=40), samples=500, progress=False, run=run)
+    assert again["all"]["radar_fit"] == summary["all"]["radar_fit"]
+    assert again["all"]["mesh"]["dice"] == [0.5, 0.0, 5]  # its rows for the fitted samples; no baselines
+    assert "mean_shape" not in again["all"]
+
+
+def test_the_build_noise_is_the_recording_and_other_levels_scale_it(fitted):
+    data, _ = fitted
+    sample = F.MeshSARDataset(data, "test", seed=0, noisy_loss_echo=True)[1]
+    index = read_json(data / INDEX_NAME)
+    clean = sample["echo_clean"].numpy()
+    built = F.recorded_loss_echo_at(sample, index, 1.0)
+    assert np.array_equal(built, sample["echo_noisy"].numpy())  # the reader's recorded echo, bit for bit
+    assert not np.array_equal(built, clean)
+    assert np.array_equal(F.recorded_loss_echo_at(sample, index, 0.0), clean)
+    assert np.allclose(F.recorded_loss_echo_at(sample, index, 2.0) - clean, 2 * (built - clean), atol=1e-5)
+
+
+def test_a_build_without_a_model_or_samples_is_refused_by_name(fitted, tmp_path):
+    data, _ = fitted
+    bare = tmp_path / "bare"
+    shape_model_build(bare, n=2)
+    (bare / "ssm" / "model.npz").unlink()
+    with pytest.raises(InputError, match="model.npz: no shape model"):
+        fit_split(bare, progress=False)
