@@ -207,8 +207,7 @@ def test_the_build_noise_is_the_recording_and_other_levels_scale_it(fitted):
     assert np.allclose(F.recorded_loss_echo_at(sample, index, 2.0) - clean, 2 * (built - clean), atol=1e-5)
 
 
-def test_a_build_without_a_model_or_samples_is_refused_by_name(fitted, tmp_path):
-    data, _ = fitted
+def test_a_build_without_a_model_is_refused_by_name(tmp_path):
     bare = tmp_path / "bare"
     shape_model_build(bare, n=2)
     (bare / "ssm" / "model.npz").unlink()
