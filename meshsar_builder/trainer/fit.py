@@ -51,12 +51,14 @@ from meshsar_builder.trainer.train import DatasetGeometry
 
 @dataclasses.dataclass(frozen=True)
 class FitParams:
-    """How the fit moves: Adam on the standardised coefficients (coefficient / mode sd) and the
-    translation (mm), each with its own step, for a fixed number of iterations."""
+    """How the fit moves: Adam on the standardised coefficients (coefficient / mode sd), the
+    rotation (axis-angle, rad, about the mean's centre) and the translation (mm), each with
+    its own step, for a fixed number of iterations; rotation_lr 0 keeps the model's pose."""
 
     modes: int = 7
     iterations: int = 150
     coefficient_lr: float = 0.05
+    rotation_lr: float = 0.005
     translation_lr_mm: float = 0.5
     focused: FocusedParams = dataclasses.field(default_factory=FocusedParams)
 
@@ -74,25 +76,33 @@ def shape_model_tensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
 
 
 def fit_shape(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, params: FitParams) -> dict:
-    """Fit the model's `params.modes` leading modes and a translation to focused targets.
+    """Fit the model's `params.modes` leading modes and its pose to focused targets.
 
     model: shape_model_tensors; targets (V, S, H, W) float, setup.target of the recorded
-    echo of each view in setup.views. Starts at the mean, centred on the origin (its bounding
-    box centre), as the heart frame centres every sample. Returns z (K,) the standardised
-    coefficients, translation (3,) mm, verts (n, 3) float64 mm, losses (iterations + 1,) the
-    loss before each step and after the last.
+    echo of each view in setup.views. Starts at the mean, its bounding-box centre on the
+    origin (the heart frame centres every sample there). Returns z (K,) the standardised
+    coefficients, rotation (3,) axis-angle rad, translation (3,) mm (where the mean's centre
+    goes), verts (n, 3) float64 mm, losses (iterations + 1,) the loss before each step and
+    after the last.
     """
     k = params.modes
     if not 0 <= k <= model["modes"].shape[0]:
         raise InputError(f"fit: modes must be 0..{model['modes'].shape[0]} (the model's), got {k}")
     mean, modes, sd, faces = model["mean"], model["modes"][:k], model["sd"][:k], model["faces"]
+    centre = (mean.max(0).values + mean.min(0).values) / 2
     z = torch.zeros(k, dtype=torch.float64, requires_grad=True)
-    translation = (-(mean.max(0).values + mean.min(0).values) / 2).requires_grad_(True)
-    optimiser = torch.optim.Adam([{"params": [z], "lr": params.coefficient_lr},
-                                  {"params": [translation], "lr": params.translation_lr_mm}])
+    rotation = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    translation = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    groups = [{"params": [z], "lr": params.coefficient_lr}, {"params": [translation], "lr": params.translation_lr_mm}]
+    optimiser = torch.optim.Adam(groups + ([{"params": [rotation], "lr": params.rotation_lr}]
+                                           if params.rotation_lr > 0 else []))
+    zero = torch.zeros((), dtype=torch.float64)
 
     def verts() -> torch.Tensor:
-        return mean + torch.einsum("k,kvc->vc", z * sd, modes) + translation  # (n, 3)
+        x, y, w = rotation
+        skew = torch.stack([torch.stack([zero, -w, y]), torch.stack([w, zero, -x]), torch.stack([-y, x, zero])])
+        shape = mean + torch.einsum("k,kvc->vc", z * sd, modes) - centre  # (n, 3)
+        return shape @ torch.linalg.matrix_exp(skew).T + translation  # (n, 3)
 
     losses = []
     for _ in range(params.iterations):
@@ -104,8 +114,8 @@ def fit_shape(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, para
     with torch.no_grad():
         final = verts()
         losses.append(float(focused_loss(final[None].float(), faces, targets[None], setup)))
-    return {"z": z.detach().numpy(), "translation": translation.detach().numpy(), "verts": final.numpy(),
-            "losses": np.asarray(losses)}
+    return {"z": z.detach().numpy(), "rotation": rotation.detach().numpy(), "translation": translation.detach().numpy(),
+            "verts": final.numpy(), "losses": np.asarray(losses)}
 
 
 def recorded_loss_echo_at(sample: dict, index: dict, scale: float) -> np.ndarray:
@@ -189,7 +199,7 @@ def _fit_sample(sample: dict, seed: int, model: dict, index: dict, scale: float,
     return {
         "z": result["z"].tolist(),
         "z_true": (np.asarray(sample["meta"]["ssm_coeffs"][:k]) / model["sd"][:k].numpy()).tolist(),
-        "translation_mm": result["translation"].tolist(),
+        "rotation_deg": np.degrees(result["rotation"]).tolist(), "translation_mm": result["translation"].tolist(),
         "loss_start": float(result["losses"][0]), "loss_end": float(result["losses"][-1]), "loss_truth": float(truth),
         # the samples share the model's topology: vertex i of the fit against vertex i of the truth
         "correspondence_mm": float(np.linalg.norm(result["verts"] - gt[0], axis=1).mean()),
