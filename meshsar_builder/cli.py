@@ -105,7 +105,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def cmd_fit(args: argparse.Namespace) -> int:
     from meshsar_builder.pipeline.io import write_bytes
-    from meshsar_builder.trainer.fit import FitParams, fit_split, sweep_table
+    from meshsar_builder.trainer.fit import FitParams, fit_held_out, fit_split, sweep_table
 
     try:
         modes = [int(k) for k in args.modes.split(",")]
@@ -117,8 +117,12 @@ def cmd_fit(args: argparse.Namespace) -> int:
     refuse_if_locked(args.data)
     for k in modes:
         for noise in noises:
-            fit_split(args.data, args.split, FitParams(modes=k, iterations=args.iterations), snr_db=noise, run=args.run,
-                      samples=args.samples, limit=args.limit)
+            params = FitParams(modes=k, iterations=args.iterations)
+            if args.held_out:
+                fit_held_out(args.data, params, snr_db=noise, samples=args.samples, limit=args.limit)
+            else:
+                fit_split(args.data, args.split, params, snr_db=noise, run=args.run, samples=args.samples,
+                          limit=args.limit)
     table = sweep_table(args.data, args.split)
     write_bytes(Path(args.data) / "fits" / f"{args.split}.md", table.encode())
     print(table)
@@ -126,8 +130,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from meshsar_builder.trainer.ablate import (RADAR_SEEDS, RADAR_WEIGHTS, VARIANTS, ablate, markdown,
-                                                radar_ablation, radar_markdown)
+    from meshsar_builder.trainer.ablate import (
+        RADAR_SEEDS,
+        RADAR_WEIGHTS,
+        VARIANTS,
+        ablate,
+        markdown,
+        radar_ablation,
+        radar_markdown,
+    )
 
     try:
         seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else (RADAR_SEEDS if args.radar
@@ -235,6 +246,9 @@ def parser() -> argparse.ArgumentParser:
                     help="comma-separated noise levels: build (the recorded echo), an image SNR in dB (the noise "
                          "redrawn from the same seeds at that level) or off (default build)")
     fi.add_argument("--iterations", type=int, default=150, help="Adam steps per sample (default 150)")
+    fi.add_argument("--held-out", action="store_true",
+                    help="fit each registered subject with a shape model of the others (leave-subject-out) "
+                         "instead of the split's shape-model test samples")
     fi.add_argument("--run", help="a trained run whose evaluation on the split is tabled beside the fit")
     fi.add_argument("--limit", type=int, help="fit the first N shape-model test samples only")
     fi.add_argument("--samples", type=int, default=20_000,

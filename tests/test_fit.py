@@ -230,3 +230,56 @@ def test_a_build_without_a_model_is_refused_by_name(tmp_path):
     (bare / "ssm" / "model.npz").unlink()
     with pytest.raises(InputError, match="model.npz: no shape model"):
         fit_split(bare, progress=False)
+
+
+@pytest.fixture(scope="module")
+def held_out_build(tmp_path_factory):
+    """The tiny build plus what a leave-subject-out fit reads: five registered ellipsoids (one
+    topology), the groupwise template, the shape model's record naming them, and a recipe whose
+    radar and images are the tiny build's."""
+    from meshsar_builder.geometry.meshfile import write_ply
+
+    root = shape_model_build(tmp_path_factory.mktemp("held_out"), n=2)
+    verts, faces, _ = icosphere_levels(2)
+    axes = [(40, 36, 30), (44, 35, 31), (38, 40, 28), (42, 37, 34), (46, 33, 29)]
+    (root / "register").mkdir()
+    write_ply(root / "register" / "template.ply", verts[2] * 38.0, faces[2], np.zeros(len(verts[2]), np.uint8))
+    inputs = {"register/template.ply": "0"}
+    for k, a in enumerate(axes):
+        write_ply(root / "register" / f"subj{k}.ply", verts[2] * np.array(a, float), faces[2],
+                  np.zeros(len(verts[2]), np.uint8))
+        write_json(root / "register" / f"subj{k}.json", {"source": "toy"})
+        inputs[f"register/subj{k}.ply"] = "0"
+    write_json(root / "ssm" / "model.json", {"inputs": inputs})
+    smoke = (Path(__file__).parents[1] / "manifests" / "smoke.toml").read_text()
+    recipe = smoke.split("[radar]")[0] + (
+        "[radar]\naperture = [8, 8]\nstep_mm = 10.0\nn_samples = 8\necho_decimation = [2, 2, 2]\n"
+        "[images]\nsize = 32\n")
+    (root / "recipe.toml").write_text(recipe)
+    return root, [np.asarray(verts[2] * np.array(a, float)) for a in axes], faces[2]
+
+
+def test_each_held_out_subject_is_fitted_by_a_model_of_the_others(held_out_build):
+    from meshsar_builder.geometry.ssm import build_model
+    from meshsar_builder.trainer.metrics import mesh_metrics
+
+    root, shapes, faces = held_out_build
+    summary = F.fit_held_out(root, FitParams(modes=7, iterations=20), samples=500, progress=False)
+    fits = read_json(root / "fits" / "held-out-k7-build" / "fits.json")
+    assert sorted(fits["samples"]) == [f"subj{k}" for k in range(5)]
+    assert summary["all"]["radar_fit"]["assd_mm"][2] == 5
+    with open(root / "fits" / "held-out-k7-build" / "metrics.csv", newline="") as f:
+        starts = {r["sample_id"]: float(r["assd_mm"]) for r in csv.DictReader(f) if r["method"] == "ssm_mean"}
+    template = np.asarray(icosphere_levels(2)[0][2] * 38.0)
+    for k, record in fits["samples"].items():
+        n = int(k[-1])
+        assert record["z_true"] is None
+        # The start is the mean of the other four (in the template's frame), not of all five.
+        others = build_model(np.stack([s for j, s in enumerate(shapes) if j != n]), faces, 0.98, reference=template)
+        assert len(record["z"]) == len(others.variances) <= 3  # 7 were asked; 4 subjects give at most 3 modes
+        truth = shapes[n] - (shapes[n].max(0) + shapes[n].min(0)) / 2
+        start = others.mean - (others.mean.max(0) + others.mean.min(0)) / 2
+        assert starts[k] == pytest.approx(mesh_metrics(start, faces, truth, faces, samples=500, seed=n)["assd_mm"])
+        every = build_model(np.stack(shapes), faces, 1.0, reference=template).mean
+        every = every - (every.max(0) + every.min(0)) / 2
+        assert starts[k] != pytest.approx(mesh_metrics(every, faces, truth, faces, samples=500, seed=n)["assd_mm"])

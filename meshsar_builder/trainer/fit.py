@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import math
 import os
 import time
 from pathlib import Path
@@ -63,16 +62,20 @@ class FitParams:
     focused: FocusedParams = dataclasses.field(default_factory=FocusedParams)
 
 
+def model_tensors(mean: np.ndarray, modes: np.ndarray, variances: np.ndarray, faces: np.ndarray) -> dict:
+    """A shape model as float64 tensors: mean (n, 3), modes (K, n, 3), sd (K,), faces (m, 3) int64."""
+    return {"mean": torch.from_numpy(np.asarray(mean, np.float64)), "modes": torch.from_numpy(np.asarray(modes, np.float64)),
+            "sd": torch.from_numpy(np.sqrt(np.asarray(variances, np.float64))),
+            "faces": torch.from_numpy(np.asarray(faces, np.int64))}
+
+
 def shape_model_tensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
-    """The build's shape model as float64 tensors: mean (n, 3), modes (K, n, 3), sd (K,), faces (m, 3) int64."""
+    """The build's shape model (ssm/model.npz) as model_tensors."""
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no shape model; the build has no ssm stage output")
     with np.load(path) as model:
-        return {"mean": torch.from_numpy(model["mean"].astype(np.float64)),
-                "modes": torch.from_numpy(model["modes"].astype(np.float64)),
-                "sd": torch.from_numpy(np.sqrt(model["variances"].astype(np.float64))),
-                "faces": torch.from_numpy(model["faces"].astype(np.int64))}
+        return model_tensors(model["mean"], model["modes"], model["variances"], model["faces"])
 
 
 def fit_shape(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, params: FitParams) -> dict:
@@ -120,11 +123,13 @@ def fit_shape(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, para
 
 def recorded_loss_echo_at(sample: dict, index: dict, scale: float) -> np.ndarray:
     """(V, Lx, Ly, Lf) complex64: the recorded echo on the loss grid with the build's noise scaled
-    by `scale` (1: the build's recording bit for bit; 0: noise-free), from the same seeds."""
+    by `scale` (1: the build's recording bit for bit; 0: noise-free), from the same seeds.
+
+    sample: echo_clean (V, Lx, Ly, Lf), noise_seed (V,) and noise_sigma (V,), arrays or tensors."""
     full, keep = loss_grid_indices(index)
     return np.stack([recorded_echo(clean, seed, float(sigma) * scale, full, keep)
-                     for clean, seed, sigma in zip(sample["echo_clean"].numpy(), sample["noise_seed"],
-                                                   sample["noise_sigma"].numpy())])
+                     for clean, seed, sigma in zip(np.asarray(sample["echo_clean"]), sample["noise_seed"],
+                                                   np.asarray(sample["noise_sigma"]))])
 
 
 def noise_scale(index: dict, snr_db: float | None) -> float:
@@ -159,32 +164,94 @@ def fit_split(data: str | os.PathLike, split: str = "seed-0", params: FitParams 
     chosen = [i for i in range(len(dataset)) if dataset[i]["meta"].get("provenance") == "ssm"][:limit]
     if not chosen:
         raise InputError(f"{data}: the test part of {split} has no shape-model samples to fit")
-    # Fits already made with these settings are kept (a rerun adds a run's rows or resumes).
-    previous = read_json(out / "fits.json") if (out / "fits.json").exists() else {}
     record = {"data": str(data), "split": split, "snr_db": label, "params": _plain(params)}
+    items = [(dataset[i]["sample_id"], i, lambda i=i: (dataset[i], model, params)) for i in chosen]
+    title = f"{data.name} ({split}, test, shape-model samples; {params.modes} modes, noise {label})"
+    return _fit_items(out, record, items, index, scale, setup, samples, network, title, progress)
+
+
+def fit_held_out(data: str | os.PathLike, params: FitParams = FitParams(), snr_db: float | None | str = "build",
+                 samples: int = 20_000, limit: int | None = None, out: str | os.PathLike | None = None,
+                 progress: bool = True) -> dict:
+    """Leave-subject-out: each registered subject of the build's shape model, fitted by a model of
+    the others; returns the summary.
+
+    The model of the others is built as the ssm stage builds the build's (the recipe's
+    variance and Procrustes iterations, the groupwise template's frame), so it has not seen the
+    subject: the fit's error includes the model's. The subject's echo is simulated as the
+    radar stage simulates a sample (radar.render.render_sample on its registered mesh, centred
+    on its bounding box; diffuse part and noise seeded by the recipe seed and the subject),
+    then fitted as fit_split fits a test sample. Writes DATA/fits/held-out-k<K>-<noise>/ alike.
+    """
+    from meshsar_builder.geometry.meshfile import read_ply
+    from meshsar_builder.geometry.ssm import build_model
+    from meshsar_builder.pipeline import recipe as recipe_mod
+    from meshsar_builder.pipeline.seeding import item_rng
+    from meshsar_builder.radar.render import render_sample
+
+    data = Path(data)
+    index = read_index(data)
+    recipe = recipe_mod.load(data / "recipe.toml")
+    record_file = data / "ssm" / "model.json"
+    if not record_file.exists():
+        raise InputError(f"{record_file}: not found; the build has no shape model to leave subjects out of")
+    inputs = sorted(p for p in read_json(record_file)["inputs"] if p.startswith("register/"))
+    subjects = [Path(p).stem for p in inputs if Path(p).stem != "template"]
+    if len(subjects) < 4:
+        raise InputError(f"{record_file}: {len(subjects)} registered subjects; leaving one out needs at least 4 "
+                         "(a model of 3 or more)")
+    template, faces, labels = read_ply(data / "register" / "template.ply")
+    shapes = {sid: read_ply(data / "register" / f"{sid}.ply")[0] for sid in subjects}
+    scale = 1.0 if snr_db == "build" else noise_scale(index, snr_db)
+    label = "build" if snr_db == "build" else ("off" if snr_db is None else f"{snr_db:g}db")
+    out = Path(out) if out is not None else data / "fits" / f"held-out-k{params.modes}-{label}"
+    setup = DatasetGeometry.from_index(index, ()).focused_setup(params.focused)
+
+    def subject(sid: str) -> tuple[dict, dict, FitParams]:
+        others = np.stack([v for other, v in shapes.items() if other != sid])
+        loo = build_model(others, faces, recipe.ssm.variance, recipe.ssm.procrustes_iterations, labels=labels,
+                          reference=template)
+        verts = shapes[sid] - (shapes[sid].max(0) + shapes[sid].min(0)) / 2
+        echo = render_sample(verts, faces, recipe.radar, recipe.images, item_rng(recipe.seed, "fit-held-out", sid))
+        source = read_json(data / "register" / f"{sid}.json").get("source", "")
+        sample = {"sample_id": sid, "verts": torch.from_numpy(verts), "faces": torch.from_numpy(faces.astype(np.int64)),
+                  "meta": {"source": source, "subset": "held_out"}, **{k: echo[k] for k in
+                                                                        ("echo_clean", "noise_seed", "noise_sigma")}}
+        # a model of s - 1 subjects has at most s - 2 modes
+        return (sample, model_tensors(loo.mean, loo.modes, loo.variances, loo.faces),
+                dataclasses.replace(params, modes=min(params.modes, len(loo.variances))))
+
+    record = {"data": str(data), "split": "held-out", "snr_db": label, "params": _plain(params)}
+    items = [(sid, n, lambda sid=sid: subject(sid)) for n, sid in enumerate(subjects[:limit])]
+    title = f"{data.name} (held-out subjects, leave-one-out models; {params.modes} modes, noise {label})"
+    return _fit_items(out, record, items, index, scale, setup, samples, {}, title, progress)
+
+
+def _fit_items(out: Path, record: dict, items: list, index: dict, scale: float, setup, samples: int, extra: dict,
+               title: str, progress: bool) -> dict:
+    """Fit each (id, metric seed, load -> (sample, model tensors, its FitParams)) item, keeping the fits that
+    out/fits.json already holds with these settings (a rerun adds a run's rows or resumes);
+    writes fits.json, metrics.csv and summary.json / .md; returns the summary."""
+    previous = read_json(out / "fits.json") if (out / "fits.json").exists() else {}
     kept = previous.get("samples", {}) if all(previous.get(k) == v for k, v in record.items()) else {}
     rows, fits = [], {}
-    for i in tqdm(chosen, desc=f"fit k={params.modes} {label}", disable=not progress):
-        sample = dataset[i]
-        sid = sample["sample_id"]
-        fits[sid] = kept.get(sid) or _fit_sample(sample, i, model, index, scale, setup, params, samples)
-        rows += fits[sid]["rows"] + network.get(sid, [])
+    for sid, seed, load in tqdm(items, desc=f"fit {out.name}", disable=not progress):
+        fits[sid] = kept.get(sid) or _fit_sample(*load(), seed, index, scale, setup, samples)
+        rows += fits[sid]["rows"] + extra.get(sid, [])
         write_json(out / "fits.json", {**record, "samples": fits})
     summary = summarise(rows)
     write_csv(out / "metrics.csv", rows)
     write_json(out / "summary.json", summary)
-    title = (f"# Shape model fitted to the radar alone: {data.name} ({split}, test, shape-model samples; "
-             f"{params.modes} modes, noise {label})\n\n")
-    write_bytes(out / "summary.md", (title + markdown(summary)).encode())
+    write_bytes(out / "summary.md", f"# Shape model fitted to the radar alone: {title}\n\n{markdown(summary)}".encode())
     return summary
 
 
-def _fit_sample(sample: dict, seed: int, model: dict, index: dict, scale: float, setup, params: FitParams,
+def _fit_sample(sample: dict, model: dict, params: FitParams, seed: int, index: dict, scale: float, setup,
                 samples: int) -> dict:
     """One test sample's fit record: coefficients, translation, losses, correspondence, seconds and
     its metric rows (`radar_fit` and the start, `ssm_mean`); the truth enters only the scores."""
     echo = recorded_loss_echo_at(sample, index, scale)
-    targets = torch.from_numpy(setup.target(echo, sample["noise_sigma"].numpy() * scale))  # (V, S, H, W)
+    targets = torch.from_numpy(setup.target(echo, np.asarray(sample["noise_sigma"]) * scale))  # (V, S, H, W)
     began = time.perf_counter()
     result = fit_shape(model, targets, setup, params)
     seconds = time.perf_counter() - began
@@ -198,7 +265,8 @@ def _fit_sample(sample: dict, seed: int, model: dict, index: dict, scale: float,
     truth = focused_loss(torch.from_numpy(gt[0])[None].float(), torch.from_numpy(gt[1]), targets[None], setup)
     return {
         "z": result["z"].tolist(),
-        "z_true": (np.asarray(sample["meta"]["ssm_coeffs"][:k]) / model["sd"][:k].numpy()).tolist(),
+        "z_true": (np.asarray(sample["meta"]["ssm_coeffs"][:k]) / model["sd"][:k].numpy()).tolist()
+        if "ssm_coeffs" in sample["meta"] else None,
         "rotation_deg": np.degrees(result["rotation"]).tolist(), "translation_mm": result["translation"].tolist(),
         "loss_start": float(result["losses"][0]), "loss_end": float(result["losses"][-1]), "loss_truth": float(truth),
         # the samples share the model's topology: vertex i of the fit against vertex i of the truth
@@ -225,17 +293,20 @@ def _plain(params: FitParams) -> dict:
 
 
 def sweep_table(data: str | os.PathLike, split: str = "seed-0") -> str:
-    """A markdown table of every fit folder of `split` under DATA/fits: mean ± std of ASSD, HD and Dice."""
-    lines = ["| modes | noise | n | ASSD mm (fit) | ASSD mm (mean) | HD mm (fit) | Dice (fit) | correspondence mm |",
-             "|---|---|---|---|---|---|---|---|"]
-    for folder in sorted((Path(data) / "fits").glob(f"{split}-k*")):
+    """A markdown table of the fit folders under DATA/fits, the split's shape-model samples and the
+    held-out subjects: mean ± std of ASSD, HD and Dice, the start's ASSD, the correspondence error."""
+    lines = ["| samples | modes | noise | n | ASSD mm (fit) | ASSD mm (start) | HD mm (fit) | Dice (fit) | "
+             "correspondence mm | s a fit |", "|---|---|---|---|---|---|---|---|---|---|"]
+    fits_dir = Path(data) / "fits"
+    for folder in sorted(fits_dir.glob(f"{split}-k*")) + sorted(fits_dir.glob("held-out-k*")):
         if not (folder / "summary.json").exists():
             continue
         summary, fits = read_json(folder / "summary.json")["all"], read_json(folder / "fits.json")
-        fit, mean = summary["radar_fit"], summary["ssm_mean"]
-        corr = [s["correspondence_mm"] for s in fits["samples"].values() if s["correspondence_mm"] is not None]
-        lines.append(f"| {fits['params']['modes']} | {fits['snr_db']} | {fit['assd_mm'][2]} | "
-                     f"{fit['assd_mm'][0]:.2f} ± {fit['assd_mm'][1]:.2f} | {mean['assd_mm'][0]:.2f} | "
+        fit, start = summary["radar_fit"], summary["ssm_mean"]
+        records = list(fits["samples"].values())
+        lines.append(f"| {fits['split']} | {fits['params']['modes']} | {fits['snr_db']} | {fit['assd_mm'][2]} | "
+                     f"{fit['assd_mm'][0]:.2f} ± {fit['assd_mm'][1]:.2f} | {start['assd_mm'][0]:.2f} | "
                      f"{fit['hd_mm'][0]:.2f} ± {fit['hd_mm'][1]:.2f} | {fit['dice'][0]:.4f} | "
-                     f"{np.mean(corr) if corr else math.nan:.2f} |")
+                     f"{np.mean([r['correspondence_mm'] for r in records]):.2f} | "
+                     f"{np.mean([r['seconds'] for r in records]):.0f} |")
     return "\n".join(lines) + "\n"
