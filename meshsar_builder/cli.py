@@ -98,8 +98,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     refuse_if_locked(args.data)
     evaluate(args.run, args.data, args.split, renders=args.renders, device=args.device, checkpoint=args.checkpoint,
-             compare=tuple(args.compare), samples=args.samples)
-    print((Path(args.run) / f"eval-{args.split}" / "summary.md").read_text())
+             compare=tuple(args.compare), samples=args.samples, refine=args.refine)
+    print((Path(args.run) / f"eval-{args.split}{'-refine' if args.refine else ''}" / "summary.md").read_text())
     return 0
 
 
@@ -117,7 +117,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     refuse_if_locked(args.data)
     for k in modes:
         for noise in noises:
-            params = FitParams(modes=k, iterations=args.iterations)
+            params = FitParams(modes=k, iterations=args.iterations, rotation_lr=args.rotation_lr)
             if args.held_out:
                 fit_held_out(args.data, params, snr_db=noise, samples=args.samples, limit=args.limit)
             else:
@@ -168,7 +168,7 @@ def cmd_predict(args: argparse.Namespace) -> int:
     if args.data:
         refuse_if_locked(args.data)
     print(predict(args.run, args.data, args.split, args.subset, args.images, args.device, args.out, args.checkpoint,
-                  args.gallery))
+                  args.gallery, refine=args.refine))
     return 0
 
 
@@ -234,6 +234,9 @@ def parser() -> argparse.ArgumentParser:
                    help="surface points per mesh and direction for ASSD / HD / HD95 (default 20000)")
     e.add_argument("--with", dest="compare", metavar="RUN", action="append", default=[],
                    help="another run evaluated beside it in the same table, e.g. an implicit baseline (repeatable)")
+    e.add_argument("--refine", action="store_true",
+                   help="also refine each predicted mesh against the sample's recorded echo (the run's [refine]); "
+                        "writes RUN/eval-<split>-refine with a paired test, before against after")
     add_run_options(e)
     e.set_defaults(func=cmd_evaluate)
     fi = sub.add_parser("fit", help="fit the build's shape model to each test sample's recorded echo alone "
@@ -246,6 +249,8 @@ def parser() -> argparse.ArgumentParser:
                     help="comma-separated noise levels: build (the recorded echo), an image SNR in dB (the noise "
                          "redrawn from the same seeds at that level) or off (default build)")
     fi.add_argument("--iterations", type=int, default=150, help="Adam steps per sample (default 150)")
+    fi.add_argument("--rotation-lr", type=float, default=0.0,
+                    help="Adam step of the rotation (rad); 0 (default) keeps the model's orientation")
     fi.add_argument("--held-out", action="store_true",
                     help="fit each registered subject with a shape model of the others (leave-subject-out) "
                          "instead of the split's shape-model test samples")
@@ -264,6 +269,8 @@ def parser() -> argparse.ArgumentParser:
     pr.add_argument("--subset", default="test", help="with --data: which part of the split (default test)")
     pr.add_argument("--out", help="output folder (default RUN/predict-<split>-<subset> or RUN/predict-<file stem>)")
     pr.add_argument("--gallery", type=int, help="samples drawn in gallery.png (default all)")
+    pr.add_argument("--refine", action="store_true",
+                    help="refine each mesh against its sample's recorded echo (the run's [refine]; needs --data)")
     add_run_options(pr)
     pr.set_defaults(func=cmd_predict)
     ab = sub.add_parser("ablate", help="train and evaluate a config's ablation variants over seeds: mean ± std table",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -87,3 +88,45 @@ def test_mean_shape_of_offset_spheres_is_the_middle_sphere_at_the_origin():
     assert abs(radius.mean() - 25.0) < 0.3 and radius.max() - radius.min() < 1.5
     mesh = trimesh.Trimesh(verts, faces, process=False)
     assert mesh.is_watertight and M.signed_volume(verts, faces) == pytest.approx(4 / 3 * np.pi * 25**3, rel=0.03)
+
+
+def test_predict_refine_writes_the_refined_meshes_and_an_images_file_is_refused(tiny_run, tmp_path):
+    data, run = tiny_run
+    plain = P.predict(run, data, out=tmp_path / "plain", gallery=0)
+    refined = P.predict(run, data, out=tmp_path / "refined", gallery=0, refine=True)
+    test = MeshSARDataset(data, "test")
+    moved = []
+    for sid in test.ids:
+        a = trimesh.load(plain / f"{sid}.ply", process=False)
+        b = trimesh.load(refined / f"{sid}.ply", process=False)
+        np.testing.assert_array_equal(a.faces, b.faces)
+        moved.append(np.linalg.norm(b.vertices - a.vertices, axis=1).max())
+    config = T.load_run(run)[1]
+    # every vertex moves at most step_mm a step, the farthest exactly that on the first
+    assert all(config.refine.step_mm * 0.99 <= m <= config.refine.steps * config.refine.step_mm + 1e-6 for m in moved)
+    file = P.write_images(tmp_path / "images.npz", np.stack([test[i]["sar"].numpy() for i in range(len(test))]),
+                          T.read_index(data), test.ids)
+    with pytest.raises(InputError, match="images.npz: an images file holds no echo"):
+        P.predict(run, images=file, refine=True)
+
+
+def test_evaluate_refine_tables_before_and_after_with_a_paired_test(tiny_run):
+    from scipy import stats
+
+    data, run = tiny_run
+    E.evaluate(run, data, renders=0, samples=500, progress=False, refine=True)
+    out = run / "eval-seed-0-refine"
+    with open(out / "metrics.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    methods = {r["method"] for r in rows}
+    assert {"sar2mesh", "sar2mesh+refine", "template", "mean_shape"} <= methods and "template+refine" not in methods
+    paired = json.loads((out / "refine.json").read_text())
+    ids = sorted({r["sample_id"] for r in rows})
+    for column in ("dice", "assd_mm"):
+        before = [next(float(r[column]) for r in rows if r["sample_id"] == i and r["method"] == "sar2mesh") for i in ids]
+        after = [next(float(r[column]) for r in rows if r["sample_id"] == i and r["method"] == "sar2mesh+refine")
+                 for i in ids]
+        expected = stats.wilcoxon(after, before).pvalue if before != after else 1.0
+        assert paired["sar2mesh"][column]["p"] == pytest.approx(expected) and paired["sar2mesh"][column]["n"] == len(ids)
+        assert paired["sar2mesh"][column]["median_difference"] == pytest.approx(np.median(np.subtract(after, before)))
+    assert not (run / "eval-seed-0" / "refine.json").exists()  # the plain evaluation's folder is left alone

@@ -1,7 +1,7 @@
 """Trainer configs (manifests/train/*.toml): `meshsar train CONFIG ...`.
 
 A config has top-level `name` and `seed` and the tables [data], [model]
-(model.ModelConfig), [loss], [radar_loss], [optim] and [run]; unknown keys and
+(model.ModelConfig), [loss], [radar_loss], [optim], [run] and [refine]; unknown keys and
 wrong types are errors naming the file and the key.
 """
 
@@ -140,8 +140,26 @@ class RunConfig:
                              f"{self.checkpoint_every}, {self.val_every}, {self.val_samples}")
 
 
+@dataclass(frozen=True)
+class RefineConfig:
+    """[refine]: `meshsar evaluate / predict --refine` (trainer/fit.py refine_mesh). Each step moves
+    the predicted mesh down the gradient of the focused radar loss against the sample's recorded
+    echo (the gradient smoothed on the mesh as in training) plus laplacian_weight times the
+    Laplacian term against the prediction itself, scaled so that the vertex that moves most
+    moves step_mm."""
+
+    steps: int = 20
+    step_mm: float = 0.25
+    smooth_iterations: int = 100
+    laplacian_weight: float = 1.0
+
+    def __post_init__(self):
+        if self.steps < 0 or not self.step_mm > 0 or self.smooth_iterations < 0 or self.laplacian_weight < 0:
+            raise ValueError("steps, smooth_iterations, laplacian_weight: must be >= 0; step_mm: > 0")
+
+
 TABLES = {"data": DataConfig, "model": ModelConfig, "loss": LossConfig, "radar_loss": RadarLossConfig,
-          "optim": OptimConfig, "run": RunConfig}
+          "optim": OptimConfig, "run": RunConfig, "refine": RefineConfig}
 
 
 @dataclass(frozen=True)
@@ -154,6 +172,7 @@ class TrainConfig:
     radar_loss: RadarLossConfig = field(default_factory=RadarLossConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
     text: str = ""  # the TOML it came from (kept in run folders and checkpoints)
 
     def as_dict(self) -> dict:

@@ -69,6 +69,27 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
+def refine_paired(rows: list[dict]) -> dict:
+    """method -> metric -> n, the Wilcoxon signed-rank p over samples of `<method>+refine`
+    against `<method>`, the median difference (after - before) and the better of the two."""
+    from scipy import stats
+
+    by = {(r["method"], r["sample_id"]): r for r in rows}
+    out = {}
+    for method in dict.fromkeys(r["method"][: -len("+refine")] for r in rows if r["method"].endswith("+refine")):
+        ids = [sid for m, sid in by if m == method]
+        out[method] = {}
+        for column in COLUMNS:
+            before = np.array([by[method, i][column] for i in ids])
+            after = np.array([by[f"{method}+refine", i][column] for i in ids])
+            difference = after - before
+            p = float(stats.wilcoxon(after, before).pvalue) if np.any(difference != 0) else 1.0
+            median = float(np.median(difference))
+            better = "tie" if median == 0 else ("refine" if (median > 0) == (column in HIGHER_IS_BETTER) else "before")
+            out[method][column] = {"n": len(ids), "p": p, "median_difference": median, "better": better}
+    return out
+
+
 def markdown(summary: dict) -> str:
     """Mean ± std tables, one per source group, columns in COLUMNS order (arrows: better direction)."""
     head = [f"{c} {'↑' if c in HIGHER_IS_BETTER else '↓'}" for c in COLUMNS]
@@ -121,13 +142,18 @@ def training_shapes(run: Path, data: Path, split: str) -> list[tuple[np.ndarray,
 
 def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, split: str = "seed-0",
              renders: int | None = None, device: str = "cpu", samples: int = 20_000, progress: bool = True,
-             checkpoint: str = "best", compare: tuple[str | os.PathLike, ...] = (), baselines: bool = True) -> dict:
+             checkpoint: str = "best", compare: tuple[str | os.PathLike, ...] = (), baselines: bool = True,
+             refine: bool = False) -> dict:
     """Evaluate a run (and the runs in `compare`) on the test split of `split`; returns the summary
     (see module docstring), written under RUN/eval-<split>.
 
     data: the build folder (default: the one the run was trained on); renders: samples drawn
     (None: all); checkpoint: "best" (validation) or "last"; baselines: False leaves out the
-    template and mean-shape rows (an ablation scores them once for all its runs).
+    template and mean-shape rows (an ablation scores them once for all its runs); refine: also
+    each mesh model's prediction refined against the sample's recorded echo (fit.refine_mesh,
+    the run's [refine]), as method `<method>+refine`, with a Wilcoxon signed-rank test per
+    metric over the test samples, before against after, in refine.json; written under
+    RUN/eval-<split>-refine instead.
     """
     run = Path(run)
     device = pick_device(device, 0)
@@ -135,6 +161,7 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
     data = Path(data if data is not None else info["data"])
     index = read_index(data)
     learned = []  # (method, model, view positions, channel positions)
+    configs = {}  # method -> its run's config ([refine], [radar_loss])
     for path, (net, cfg, inf) in [(run, (model, config, info)), *((p, load_run(p, device, checkpoint)) for p in compare)]:
         taken = [m for m, *_ in learned]
         method = cfg.model.kind if cfg.model.kind not in taken else f"{cfg.model.kind}-{cfg.name}"
@@ -143,7 +170,14 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
             raise InputError(f"{data}: lacks the channels {missing} that run {path} uses")
         views = DatasetGeometry.from_index(index, tuple(inf["view_names"])).view_index
         learned.append((method, net, views, [index["channels"].index(c) for c in inf["channels"]]))
-    dataset = MeshSARDataset(data, "test", seed=split_seed(split))
+        configs[method] = cfg
+    dataset = MeshSARDataset(data, "test", seed=split_seed(split), noisy_loss_echo=refine)
+    if refine:
+        from meshsar_builder.trainer.fit import sample_refiner
+
+        # mesh models only: an implicit model's surface has no topology to move
+        refiners = {method: (net.topology(), sample_refiner(index, configs[method])) for method, net, *_ in learned
+                    if hasattr(net, "topology")}
     baselines = {"template": template_mesh(config.model.template_level, info["template_radius_mm"]),
                  "mean_shape": mean_shape(training_shapes(run, data, split))} if baselines else {}
     rows, pairs = [], []
@@ -151,14 +185,19 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         sample = dataset[i]
         meshes = {method: net.predict_mesh(sample["sar"][views][:, channels]) for method, net, views, channels in learned}
         gt = (sample["verts"].double().numpy(), sample["faces"].numpy())
+        if refine:
+            for method, (topology, refined) in refiners.items():
+                meshes[f"{method}+refine"] = (refined(meshes[method][0], topology, sample), meshes[method][1])
         for method, (pv, pf) in {**meshes, **baselines}.items():
             metrics = mesh_metrics(pv, pf, *gt, samples=samples, seed=i)
             rows.append({"sample_id": sample["sample_id"], "source": sample["meta"].get("source", ""),
                          "subset": sample["meta"].get("subset", ""), "method": method, **metrics})
         if renders is None or len(pairs) < renders:
             pairs.append((sample["sample_id"], [("truth", gt), *meshes.items()]))
-    out = run / f"eval-{split}"
+    out = run / f"eval-{split}{'-refine' if refine else ''}"
     summary = summarise(rows)
+    if refine:
+        write_json(out / "refine.json", refine_paired(rows))
     write_csv(out / "metrics.csv", rows)
     title = f"# {config.name} on {data.name} ({split}, test; {info['checkpoint']}, epoch {info['epoch']})\n\n"
     write_bytes(out / "summary.md", (title + markdown(summary)).encode())

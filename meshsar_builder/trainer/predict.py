@@ -87,10 +87,14 @@ def read_images(path: str | os.PathLike, view_names: list[str], channels: list[s
 
 def predict(run: str | os.PathLike, data: str | os.PathLike | None = None, split: str = "seed-0",
             subset: str = "test", images: str | os.PathLike | None = None, device: str = "cpu",
-            out: str | os.PathLike | None = None, checkpoint: str = "best", gallery: int | None = None) -> Path:
+            out: str | os.PathLike | None = None, checkpoint: str = "best", gallery: int | None = None,
+            refine: bool = False) -> Path:
     """Predict a mesh per sample of `subset` of `split` in `data`, or per sample of an images file.
 
-    Returns the output folder (PLY per sample, gallery.png of every sample or the first `gallery`).
+    refine: each mesh refined against its sample's recorded echo (fit.sample_refiner, the run's
+    [refine]; needs `data`, which holds the echo) before it is written; the gallery shows the
+    prediction beside it. Returns the output folder (PLY per sample, gallery.png of every
+    sample or the first `gallery`; default RUN/predict-<split>-<subset>[-refine]).
     """
     from meshsar_builder.trainer.evaluate import render_gallery  # pyvista and matplotlib only when drawing
 
@@ -98,28 +102,40 @@ def predict(run: str | os.PathLike, data: str | os.PathLike | None = None, split
         raise InputError("predict: give either --data (a built dataset) or --images (an images file)")
     run = Path(run)
     torch_device = pick_device(device, 0)
-    model, _, info = load_run(run, torch_device, checkpoint)
+    model, config, info = load_run(run, torch_device, checkpoint)
+    if refine and images is not None:
+        raise InputError(f"{images}: an images file holds no echo; --refine needs --data, whose shards hold it")
     if images is not None:
         ids, sar, index = read_images(images, info["view_names"], info["channels"], info["fov_mm"])
-        samples = [(sid, sar[i], None) for i, sid in enumerate(ids)]
+        samples = [(sid, sar[i], None, None) for i, sid in enumerate(ids)]
         out = Path(out) if out is not None else run / f"predict-{Path(images).stem}"
     else:
         index = read_index(data)
-        dataset = MeshSARDataset(data, subset, seed=split_seed(split), channels=list(info["channels"]))
+        dataset = MeshSARDataset(data, subset, seed=split_seed(split), channels=list(info["channels"]),
+                                 noisy_loss_echo=refine)
         names = [v["name"] for v in index["views"]]
         missing = [v for v in info["view_names"] if v not in names]
         if missing:
             raise InputError(f"{data}: lacks the views {missing} the run was trained on")
         view_index = [names.index(v) for v in info["view_names"]]
-        samples = ((s["sample_id"], s["sar"][view_index], (s["verts"].double().numpy(), s["faces"].numpy()))
+        samples = ((s["sample_id"], s["sar"][view_index], (s["verts"].double().numpy(), s["faces"].numpy()), s)
                    for s in map(dataset.__getitem__, range(len(dataset))))
-        out = Path(out) if out is not None else run / f"predict-{split}-{subset}"
+        out = Path(out) if out is not None else run / f"predict-{split}-{subset}{'-refine' if refine else ''}"
+    refined = None
+    if refine:
+        from meshsar_builder.trainer.fit import sample_refiner
+
+        refined = sample_refiner(index, config)
     rows = []
-    for sample_id, sar, truth in samples:
+    for sample_id, sar, truth, sample in samples:
         verts, faces = model.predict_mesh(sar)
+        meshes = [("prediction", (verts, faces))]
+        if refined is not None:
+            verts = refined(verts, model.topology(), sample)
+            meshes.append(("refined", (verts, faces)))
         write_bytes(out / f"{sample_id}.ply", trimesh.Trimesh(verts, faces, process=False).export(file_type="ply"))
         if gallery is None or len(rows) < gallery:
-            rows.append((sample_id, ([("truth", truth)] if truth is not None else []) + [("prediction", (verts, faces))]))
+            rows.append((sample_id, ([("truth", truth)] if truth is not None else []) + meshes))
     if rows:
         views = [v for name in info["view_names"] for v in index["views"] if v["name"] == name]
         render_gallery(rows, views, info["fov_mm"], out / "gallery.png")

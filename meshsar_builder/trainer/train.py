@@ -364,12 +364,14 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
 
 def same_run(stored_text: str, config: TrainConfig, until: int | None = None) -> bool:
     """Whether a checkpoint's config (its TOML text) describes the same run as `config`: equal in every
-    value but [run] device, since where a run trains is not part of what it is (it resumes elsewhere).
+    value but [run] device, since where a run trains is not part of what it is (it resumes elsewhere),
+    and [refine], which acts after training.
 
     until: only epochs 0..until-1 must train alike, so the name and the radar weight may differ
     where radar_weight_at agrees on all of them (the warm-up that a radar ablation's arms share)."""
     stored = parse_config(stored_text)
-    stored = dataclasses.replace(stored, run=dataclasses.replace(stored.run, device=config.run.device), text="")
+    stored = dataclasses.replace(stored, run=dataclasses.replace(stored.run, device=config.run.device),
+                                 refine=config.refine, text="")
     if until is not None and all(radar_weight_at(stored, e) == radar_weight_at(config, e) for e in range(until)):
         stored = dataclasses.replace(stored, name=config.name,
                                      radar_loss=dataclasses.replace(stored.radar_loss, weight=config.radar_loss.weight))
