@@ -148,7 +148,7 @@ def test_bad_weights_or_one_seed_are_refused_before_training(ablation, tmp_path,
 
 def test_a_checkpoint_that_trained_otherwise_is_not_branched_from(ablation, tmp_path):
     """After the warm-up the arms differ: a radar run cannot start from the no-radar arm's last epoch."""
-    from meshsar_builder.trainer.train import branch_run
+    from meshsar_builder.trainer.ablate import branch_run
 
     _, _, folder, result = ablation
     config = load_config(folder / f"radar-w{result['chosen_weight']:g}-seed-1" / "config.toml")

@@ -152,7 +152,7 @@ def test_balanced_radar_term_has_the_geometric_gradient_norm():
     radar = (verts.sin() * 40).abs().sum()
     g_geo, = torch.autograd.grad(geometric, verts, retain_graph=True)
     g_radar, = torch.autograd.grad(radar, verts, retain_graph=True)
-    term = T.balanced(radar, geometric, verts)
+    term = L.balanced(radar, geometric, verts)
     g_term, = torch.autograd.grad(term, verts, retain_graph=True)
     scale = g_geo.norm() / g_radar.norm()
     torch.testing.assert_close(g_term, scale * g_radar)

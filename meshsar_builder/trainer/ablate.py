@@ -43,10 +43,19 @@ from meshsar_builder.dataset.shards import read_index
 from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
 from meshsar_builder.pipeline.recipe import read_text, tomllib
-from meshsar_builder.trainer.config import parse_config
+from meshsar_builder.trainer.config import TrainConfig, parse_config
 from meshsar_builder.trainer.evaluate import BASELINES, HIGHER_IS_BETTER, evaluate
 from meshsar_builder.trainer.metrics import COLUMNS
-from meshsar_builder.trainer.train import LOG, branch_run, read_log, train
+from meshsar_builder.trainer.train import (
+    BEST,
+    CHECKPOINT,
+    LOG,
+    load_checkpoint,
+    read_log,
+    same_run,
+    save_checkpoint,
+    train,
+)
 
 VARIANTS = ("default", "no_radar", "max_only", "single_view")
 RADAR_WEIGHTS = (0.03, 0.1, 0.3)
@@ -178,6 +187,23 @@ def _test_rows(run: Path, data: Path, split: str, device: str | None, samples: i
                 if row["method"] not in BASELINES}
 
 
+def branch_run(source: Path, run: Path, config: TrainConfig) -> None:
+    """Start `run`, a run of `config`, from the checkpoint in run folder `source`, which trained as
+    `config` would up to its epoch (same_run with until); its log and best.pt come along. A run that
+    has a checkpoint of its own is left as it is."""
+    if (run / CHECKPOINT).exists():
+        return
+    state = load_checkpoint(source / CHECKPOINT)
+    if not same_run(state["config_text"], config, until=state["epoch"]):
+        raise InputError(f"{source}: its checkpoint (epoch {state['epoch']}) did not train as {config.name} "
+                         f"would up to there; {run} cannot start from it")
+    write_bytes(run / LOG, (source / LOG).read_bytes())
+    # The checkpoint last: its presence marks a finished branch.
+    for name in (BEST, CHECKPOINT):
+        if (source / name).exists():
+            save_checkpoint(run / name, {**load_checkpoint(source / name), "config_text": config.text})
+
+
 def _radar_task(table: dict, run: Path, warm: Path | None, until: int | None, data: Path, split: str,
                 device: str | None, samples: int | None, progress: bool) -> dict | None:
     """Train one run of the radar ablation (from the shared warm-up `warm`, or, with `until`, that
@@ -206,7 +232,7 @@ def radar_ablation(config: str | os.PathLike, data: str | os.PathLike, split: st
 
     The runs of one seed train alike until the radar warm-up ends (the weight is 0 there), so
     that part trains once per seed, in warmup-seed-<S>/, and every run of the seed starts from
-    its checkpoint (train.branch_run): the same numbers as training each from scratch, in about
+    its checkpoint (branch_run): the same numbers as training each from scratch, in about
     a third less time at the default config. jobs: runs trained at once, in processes that share
     the machine's cores (torch threads = cores // jobs); runs start as what they need is done.
 

@@ -30,6 +30,7 @@ from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
 from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics, occupancy_surface, voxelise
 from meshsar_builder.trainer.model import icosphere_levels
+from meshsar_builder.trainer.refine import sample_refiner
 from meshsar_builder.trainer.train import DatasetGeometry, Subset, load_run, pick_device, split_seed
 
 BASELINES = ("template", "mean_shape")
@@ -173,8 +174,6 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         configs[method] = cfg
     dataset = MeshSARDataset(data, "test", seed=split_seed(split), noisy_loss_echo=refine)
     if refine:
-        from meshsar_builder.trainer.fit import sample_refiner
-
         # mesh models only: an implicit model's surface has no topology to move
         refiners = {method: (net.topology(), sample_refiner(index, configs[method])) for method, net, *_ in learned
                     if hasattr(net, "topology")}

@@ -231,3 +231,19 @@ def focused_radar_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.
     from meshsar_builder.radar.focused import focused_loss
 
     return focused_loss(verts, faces, targets, setup)
+
+
+def balanced(radar: torch.Tensor, geometric: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:
+    """The radar term rescaled so that its gradient on `verts` has the norm of the geometric terms' there.
+
+    Returns s * radar in value and gradient, s = |d geometric/d verts| / |d radar/d verts| held
+    constant. The radar graph is walked once: its vertex gradient is carried into the network by
+    a linear surrogate (zero in value), so backward does not recompute the echo.
+    """
+    g_radar, = torch.autograd.grad(radar, verts)
+    g_geometric, = torch.autograd.grad(geometric, verts, retain_graph=True, allow_unused=True)
+    if g_geometric is None:
+        return radar.detach() * 0
+    scale = g_geometric.norm() / g_radar.norm().clamp_min(1e-30)
+    surrogate = (verts * (scale * g_radar).to(verts.dtype)).sum()
+    return scale * radar.detach() + (surrogate - surrogate.detach())

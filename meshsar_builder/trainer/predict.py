@@ -123,7 +123,7 @@ def predict(run: str | os.PathLike, data: str | os.PathLike | None = None, split
         out = Path(out) if out is not None else run / f"predict-{split}-{subset}{'-refine' if refine else ''}"
     refined = None
     if refine:
-        from meshsar_builder.trainer.fit import sample_refiner
+        from meshsar_builder.trainer.refine import sample_refiner
 
         refined = sample_refiner(index, config)
     rows = []

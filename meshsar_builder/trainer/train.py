@@ -225,7 +225,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
         relative = L.focused_radar_loss(smoothed, topo["faces"], targets, geometry.focused_setup(params))
         terms["radar_l1"] = relative.detach()
         if rc.balance == "gradient" and torch.is_grad_enabled() and verts.requires_grad:
-            terms["radar"] = radar_weight * balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
+            terms["radar"] = radar_weight * L.balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
         else:
             terms["radar"] = radar_weight * relative
     elif radar_weight > 0:
@@ -241,7 +241,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
                                 geometry.centres, geometry.freqs, geometry.radar, rc.mode, rc.beta)
         terms["radar_l1"] = relative.detach()
         if rc.balance == "gradient" and torch.is_grad_enabled() and verts.requires_grad:
-            terms["radar"] = radar_weight * balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
+            terms["radar"] = radar_weight * L.balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
         else:
             terms["radar"] = radar_weight * relative
     terms["total"] = sum(terms[name] for name in (*LOSS_TERMS, "radar"))
@@ -253,22 +253,6 @@ def focused_params(rc):
     from meshsar_builder.radar.focused import FocusedParams
 
     return FocusedParams(lateral_mm=rc.focused_lateral_mm, range_mm=rc.focused_range_mm, blur_mm=rc.focused_blur_mm)
-
-
-def balanced(radar: torch.Tensor, geometric: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:
-    """The radar term rescaled so that its gradient on `verts` has the norm of the geometric terms' there.
-
-    Returns s * radar in value and gradient, s = |d geometric/d verts| / |d radar/d verts| held
-    constant. The radar graph is walked once: its vertex gradient is carried into the network by
-    a linear surrogate (zero in value), so backward does not recompute the echo.
-    """
-    g_radar, = torch.autograd.grad(radar, verts)
-    g_geometric, = torch.autograd.grad(geometric, verts, retain_graph=True, allow_unused=True)
-    if g_geometric is None:
-        return radar.detach() * 0
-    scale = g_geometric.norm() / g_radar.norm().clamp_min(1e-30)
-    surrogate = (verts * (scale * g_radar).to(verts.dtype)).sum()
-    return scale * radar.detach() + (surrogate - surrogate.detach())
 
 
 def radar_weight_at(config: TrainConfig, epoch: int) -> float:
@@ -376,23 +360,6 @@ def same_run(stored_text: str, config: TrainConfig, until: int | None = None) ->
         stored = dataclasses.replace(stored, name=config.name,
                                      radar_loss=dataclasses.replace(stored.radar_loss, weight=config.radar_loss.weight))
     return stored == dataclasses.replace(config, text="")
-
-
-def branch_run(source: Path, run: Path, config: TrainConfig) -> None:
-    """Start `run`, a run of `config`, from the checkpoint in run folder `source`, which trained as
-    `config` would up to its epoch (same_run with until); its log and best.pt come along. A run that
-    has a checkpoint of its own is left as it is."""
-    if (run / CHECKPOINT).exists():
-        return
-    state = load_checkpoint(source / CHECKPOINT)
-    if not same_run(state["config_text"], config, until=state["epoch"]):
-        raise InputError(f"{source}: its checkpoint (epoch {state['epoch']}) did not train as {config.name} "
-                         f"would up to there; {run} cannot start from it")
-    write_bytes(run / LOG, (source / LOG).read_bytes())
-    # The checkpoint last: its presence marks a finished branch.
-    for name in (BEST, CHECKPOINT):
-        if (source / name).exists():
-            save_checkpoint(run / name, {**load_checkpoint(source / name), "config_text": config.text})
 
 
 def build_model(config: TrainConfig, info: dict) -> SAR2Mesh | ImplicitSAR:
