@@ -27,10 +27,9 @@ from meshsar_builder.trainer.fit import FitParams, fit_shape, fit_split, noise_s
 from meshsar_builder.trainer.metrics import COLUMNS  # noqa: E402
 from meshsar_builder.trainer.model import icosphere_levels  # noqa: E402
 
-from .test_focused_loss import _quiet  # noqa: E402
+from .test_focused_loss import AXES_MM, SCAN, production_echo  # noqa: E402
 from .test_train import TINY_IMAGES, TINY_RADAR  # noqa: E402
 
-AXES_MM = np.array([50.0, 40.0, 35.0])
 TRUE_Z = np.array([1.2, -0.8])
 SHIFT_MM = np.array([3.0, -2.0, 1.5])
 
@@ -38,11 +37,7 @@ SHIFT_MM = np.array([3.0, -2.0, 1.5])
 @pytest.fixture(scope="module")
 def scene():
     torch.set_num_threads(1)
-    import meshsar_builder.radar.echo as RE
-    import meshsar_builder.radar.visibility as RV
-
-    radar = RP.RadarParams(aperture=(32, 32), step_mm=5.0, loss_decimation=(1, 1, 4), diffuse=False)
-    setup = FocusedSetup(radar, radar.views, FocusedParams())
+    setup = FocusedSetup(SCAN, SCAN.views, FocusedParams())
     verts, faces, _ = icosphere_levels(3)
     mean = verts[3] * AXES_MM
     # Unit modes (as PCA gives them): a stretch along x and one along z; sd: 10 % of each axis at 1 sd.
@@ -52,15 +47,7 @@ def scene():
     model = {"mean": torch.from_numpy(mean), "modes": torch.from_numpy(modes),
              "sd": torch.from_numpy(0.1 * norms), "faces": torch.from_numpy(faces[3].astype(np.int64))}
     truth = mean + np.einsum("k,kvc->vc", TRUE_Z * 0.1 * norms, modes) + SHIFT_MM
-    grid = RP.loss_grid(radar)
-    echoes = []
-    for view in radar.views:
-        vis, _ = RV.visibility(truth, faces[3], RP.probe_points(radar, view))
-        seen = vis > 0
-        with _quiet():
-            e = RE.echo(truth[faces[3]][seen], vis[seen], grid["positions_mm"][view], grid["frequencies_hz"], radar)
-        echoes.append(e.reshape(32, 32, -1))
-    return {"setup": setup, "model": model, "truth": truth, "echo": np.stack(echoes)}
+    return {"setup": setup, "model": model, "truth": truth, "echo": production_echo(truth, faces[3])}
 
 
 def test_against_its_own_model_the_fit_recovers_the_coefficients_and_the_shift(scene):

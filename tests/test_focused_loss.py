@@ -19,28 +19,34 @@ from meshsar_builder.trainer.model import icosphere_levels  # noqa: E402
 AXES_MM = np.array([50.0, 40.0, 35.0])
 
 
-@pytest.fixture(scope="module")
-def scene():
-    torch.set_num_threads(1)
+# specular only: the targets here are the facet echo (the diffuse part: its own test below)
+SCAN = RP.RadarParams(aperture=(32, 32), step_mm=5.0, loss_decimation=(1, 1, 4), diffuse=False)
+
+
+def production_echo(verts: np.ndarray, faces: np.ndarray, radar: RP.RadarParams = SCAN) -> np.ndarray:
+    """(V, Nx, Ny, F) the production facet echo of a mesh on the radar's loss grid, every view."""
     import meshsar_builder.radar.echo as RE
     import meshsar_builder.radar.visibility as RV
 
-    # specular only: the targets here are the facet echo (the diffuse part: its own test below)
-    radar = RP.RadarParams(aperture=(32, 32), step_mm=5.0, loss_decimation=(1, 1, 4), diffuse=False)
-    setup = FocusedSetup(radar, radar.views, FocusedParams())
-    verts, faces, _ = icosphere_levels(3)
-    fine_v, fine_f = verts[3] * AXES_MM, faces[3]
     grid = RP.loss_grid(radar)
     echoes = []
     for view in radar.views:
-        vis, _ = RV.visibility(fine_v, fine_f, RP.probe_points(radar, view))
+        vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
         seen = vis > 0
         with _quiet():
-            e = RE.echo(fine_v[fine_f][seen], vis[seen], grid["positions_mm"][view], grid["frequencies_hz"], radar)
-        echoes.append(e.reshape(32, 32, -1))
-    coarse_v, coarse_f = verts[3] * AXES_MM, faces[3]
-    return {"radar": radar, "setup": setup, "echo": np.stack(echoes), "verts": coarse_v,
-            "faces": torch.as_tensor(coarse_f), "edges": torch.as_tensor(L.mesh_edges(coarse_f))}
+            e = RE.echo(verts[faces][seen], vis[seen], grid["positions_mm"][view], grid["frequencies_hz"], radar)
+        echoes.append(e.reshape(radar.aperture[0], radar.aperture[1], -1))
+    return np.stack(echoes)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    torch.set_num_threads(1)
+    setup = FocusedSetup(SCAN, SCAN.views, FocusedParams())
+    verts, faces, _ = icosphere_levels(3)
+    v, f = verts[3] * AXES_MM, faces[3]
+    return {"radar": SCAN, "setup": setup, "echo": production_echo(v, f), "verts": v,
+            "faces": torch.as_tensor(f), "edges": torch.as_tensor(L.mesh_edges(f))}
 
 
 class _quiet:
