@@ -55,7 +55,7 @@ def test_against_its_own_model_the_fit_recovers_the_coefficients_and_the_shift(s
     with torch.no_grad():
         v = torch.as_tensor(scene["truth"], dtype=torch.float32)[None]
         targets = torch.stack([setup.predicted(v, model["faces"], k)[0] for k in range(3)])
-    result = fit_shape(model, targets, setup, FitParams(modes=2, iterations=200))
+    result = fit_shape(model, targets, setup, FitParams(modes=2, iterations=120))
     assert np.abs(result["z"] - TRUE_Z).max() < 0.05
     assert np.abs(result["translation"] - SHIFT_MM).max() < 0.25
     assert np.linalg.norm(result["verts"] - scene["truth"], axis=1).mean() < 0.25
@@ -179,7 +179,7 @@ def shape_model_build(root: Path, n: int = 6) -> Path:
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     data = shape_model_build(tmp_path_factory.mktemp("fit"))
-    summary = fit_split(data, params=FitParams(modes=1, iterations=40), samples=500, progress=False)
+    summary = fit_split(data, params=FitParams(modes=1, iterations=20), samples=500, progress=False)
     return data, summary
 
 
@@ -216,7 +216,7 @@ def test_a_rerun_refits_nothing_and_adds_a_runs_rows(fitted, tmp_path, monkeypat
             writer.writerow({"sample_id": f"s{i}", "source": "toy", "subset": "", "method": "mean_shape",
                              **{c: 9.0 for c in COLUMNS}})
     monkeypatch.setattr(F, "fit_shape", lambda *a, **k: pytest.fail("refitted"))
-    again = fit_split(data, params=FitParams(modes=1, iterations=40), samples=500, progress=False, run=run)
+    again = fit_split(data, params=FitParams(modes=1, iterations=20), samples=500, progress=False, run=run)
     assert again["all"]["radar_fit"] == summary["all"]["radar_fit"]
     assert again["all"]["mesh"]["dice"] == [0.5, 0.0, 5]  # its rows for the fitted samples; no baselines
     assert "mean_shape" not in again["all"]
