@@ -1,7 +1,8 @@
 """`meshsar fit DATA --split seed-0`: the build's shape model fitted to each test sample's radar alone.
 
 Analysis by synthesis, no network: the shape model (DATA/ssm/model.npz) with its K leading
-modes, placed by a translation, starts at its mean on the heart-frame origin and moves so
+modes, placed by a translation (and a rotation if asked), starts at its mean on the
+heart-frame origin and moves so
 that the focused radar loss's image-domain model of it (radar/focused.py, as the trainer
 uses it) matches the focused recorded echo. The shape model keeps the shape smooth, which
 the per-vertex radar gradient is not.
@@ -15,10 +16,11 @@ check. The truth is read only to score the fit afterwards.
 
 A whole-heart model fits whole-heart samples only: the test samples fitted are the build's
 own shape-model samples (provenance "ssm"), drawn from the very model being fitted, so there
-is no model error (an upper bound on what the radar gives).
+is no model error (an upper bound on what the radar gives). fit_held_out gives the honest
+figure: each registered subject fitted by a model of the others.
 
 Writes DATA/fits/<split>-k<K>-<noise>[-rot]/: fits.json (per sample: the fitted and true
-standardised coefficients, the translation, the loss at the start, the end and the truth,
+standardised coefficients, the pose, the loss at the start, the end and the truth,
 the per-vertex correspondence error, seconds), metrics.csv and summary.json / summary.md
 as `meshsar evaluate` writes them (methods `radar_fit`, `ssm_mean`: the start, and the rows
 of a trained run's evaluation on the same samples when `run` is given).
@@ -56,7 +58,7 @@ class FitParams:
 
     rotation_lr is 0 by default: the build places every shape-model sample in the model's own
     orientation, and a free rotation lets the fit trade the image-domain model's bias for a
-    turn (measured: ASSD 1.51 mm against 0.9 mm on the demo's test samples, docs/trainer.md).
+    turn (measured: ASSD 1.51 mm against 1.05 mm on the demo's test samples, docs/trainer.md).
     Held-out subjects and scans lie 6-12 degrees off the model's frame and need it."""
 
     modes: int = 7
@@ -144,6 +146,13 @@ def noise_scale(index: dict, snr_db: float | None) -> float:
     return 10 ** ((float(index["radar"]["image_snr_db"]) - snr_db) / 20)
 
 
+def _noise(index: dict, snr_db: float | None | str) -> tuple[float, str]:
+    """(noise_scale, folder label) of a fit's snr_db: "build", a number in dB, or None (off)."""
+    if snr_db == "build":
+        return 1.0, "build"
+    return noise_scale(index, snr_db), "off" if snr_db is None else f"{snr_db:g}db"
+
+
 def fit_split(data: str | os.PathLike, split: str = "seed-0", params: FitParams = FitParams(),
               snr_db: float | None | str = "build", run: str | os.PathLike | None = None, samples: int = 20_000,
               limit: int | None = None, out: str | os.PathLike | None = None, progress: bool = True) -> dict:
@@ -159,8 +168,7 @@ def fit_split(data: str | os.PathLike, split: str = "seed-0", params: FitParams 
     if index.get("loss_grid") is None:
         raise InputError(f"{data}: has no loss grid (shards format 2); rebuild it to fit the radar")
     model = shape_model_tensors(data / "ssm" / "model.npz")
-    scale = 1.0 if snr_db == "build" else noise_scale(index, snr_db)
-    label = "build" if snr_db == "build" else ("off" if snr_db is None else f"{snr_db:g}db")
+    scale, label = _noise(index, snr_db)
     out = Path(out) if out is not None else data / "fits" / f"{split}-{_name(params, label)}"
     network = _run_rows(Path(run), split) if run is not None else {}
     geometry = DatasetGeometry.from_index(index, ())
@@ -207,8 +215,7 @@ def fit_held_out(data: str | os.PathLike, params: FitParams = FitParams(), snr_d
                          "(a model of 3 or more)")
     template, faces, labels = read_ply(data / "register" / "template.ply")
     shapes = {sid: read_ply(data / "register" / f"{sid}.ply")[0] for sid in subjects}
-    scale = 1.0 if snr_db == "build" else noise_scale(index, snr_db)
-    label = "build" if snr_db == "build" else ("off" if snr_db is None else f"{snr_db:g}db")
+    scale, label = _noise(index, snr_db)
     out = Path(out) if out is not None else data / "fits" / f"held-out-{_name(params, label)}"
     setup = DatasetGeometry.from_index(index, ()).focused_setup(params.focused)
 
