@@ -241,7 +241,7 @@ def parser() -> argparse.ArgumentParser:
     e.set_defaults(func=cmd_evaluate)
     fi = sub.add_parser("fit", help="fit the build's shape model to each test sample's recorded echo alone "
                                     "(no network): metrics against the truth",
-                        epilog="docs: docs/trainer.md (fitting the shape model to the radar)")
+                        epilog="docs: docs/trainer.md (physics at inference)")
     fi.add_argument("data", help="built dataset folder")
     fi.add_argument("--split", default="seed-0")
     fi.add_argument("--modes", default="7", help="comma-separated numbers of leading modes fitted (default 7)")

@@ -142,7 +142,7 @@ class RunConfig:
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """[refine]: `meshsar evaluate / predict --refine` (trainer/fit.py refine_mesh). Each step moves
+    """[refine]: `meshsar evaluate / predict --refine` (trainer/refine.py refine_mesh). Each step moves
     the predicted mesh down the gradient of the focused radar loss against the sample's recorded
     echo (the gradient smoothed on the mesh as in training) plus laplacian_weight times the
     Laplacian term against the prediction itself, scaled so that the vertex that moves most

@@ -151,7 +151,7 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
     data: the build folder (default: the one the run was trained on); renders: samples drawn
     (None: all); checkpoint: "best" (validation) or "last"; baselines: False leaves out the
     template and mean-shape rows (an ablation scores them once for all its runs); refine: also
-    each mesh model's prediction refined against the sample's recorded echo (fit.refine_mesh,
+    each mesh model's prediction refined against the sample's recorded echo (refine.refine_mesh,
     the run's [refine]), as method `<method>+refine`, with a Wilcoxon signed-rank test per
     metric over the test samples, before against after, in refine.json; written under
     RUN/eval-<split>-refine instead.

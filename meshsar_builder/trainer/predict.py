@@ -91,7 +91,7 @@ def predict(run: str | os.PathLike, data: str | os.PathLike | None = None, split
             refine: bool = False) -> Path:
     """Predict a mesh per sample of `subset` of `split` in `data`, or per sample of an images file.
 
-    refine: each mesh refined against its sample's recorded echo (fit.sample_refiner, the run's
+    refine: each mesh refined against its sample's recorded echo (refine.sample_refiner, the run's
     [refine]; needs `data`, which holds the echo) before it is written; the gallery shows the
     prediction beside it. Returns the output folder (PLY per sample, gallery.png of every
     sample or the first `gallery`; default RUN/predict-<split>-<subset>[-refine]).
