@@ -174,11 +174,12 @@ def fit_split(data: str | os.PathLike, split: str = "seed-0", params: FitParams 
     geometry = DatasetGeometry.from_index(index, ())
     setup = geometry.focused_setup(params.focused)
     dataset = MeshSARDataset(data, "test", seed=split_seed(split))
-    chosen = [i for i in range(len(dataset)) if dataset[i]["meta"].get("provenance") == "ssm"][:limit]
+    chosen = [(i, sample["sample_id"]) for i in range(len(dataset))
+              if (sample := dataset[i])["meta"].get("provenance") == "ssm"][:limit]
     if not chosen:
         raise InputError(f"{data}: the test part of {split} has no shape-model samples to fit")
     record = {"data": str(data), "split": split, "snr_db": label, "params": _plain(params)}
-    items = [(dataset[i]["sample_id"], i, lambda i=i: (dataset[i], model, params)) for i in chosen]
+    items = [(sid, i, lambda i=i: (dataset[i], model, params)) for i, sid in chosen]
     title = f"{data.name} ({split}, test, shape-model samples; {params.modes} modes, noise {label})"
     return _fit_items(out, record, items, index, scale, setup, samples, network, title, progress)
 
