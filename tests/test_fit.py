@@ -8,6 +8,7 @@ closer to the truth than its start.
 """
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -293,3 +294,23 @@ def test_each_held_out_subject_is_fitted_by_a_model_of_the_others(held_out_build
         every = build_model(np.stack(shapes), faces, 1.0, reference=template).mean
         every = every - (every.max(0) + every.min(0)) / 2
         assert starts[k] != pytest.approx(mesh_metrics(every, faces, truth, faces, samples=500, seed=n)["assd_mm"])
+
+
+def test_the_inference_bench_times_fits_and_refinements_of_shape_model_samples(fitted, tmp_path):
+    from meshsar_builder.bench.inference import run
+
+    data, _ = fitted
+    config = tmp_path / "small.toml"
+    config.write_text('name = "small"\n[model]\ntemplate_level = 2\n[refine]\nsteps = 3\n')
+    result = run(tmp_path, data, samples=2, config_path=config, params=FitParams(modes=1, iterations=20))
+    assert read_json(tmp_path / "inference.json") == json.loads(json.dumps(result))
+    rows = result["samples"]
+    assert [r["sample_id"] for r in rows] == ["s1", "s2"]  # s0, not a shape-model sample, is skipped
+    assert result["fit"] == {"modes": 1, "iterations": 20} and result["refine"]["steps"] == 3
+    for row in rows:
+        assert row["fit_seconds"] > 0 and row["refine_seconds"] > 0
+        assert row["fit_loss"][1] < row["fit_loss"][0]
+    for key, column in (("fit_seconds_per_sample", "fit_seconds"), ("refine_seconds_per_sample", "refine_seconds")):
+        target = result["targets"][key]
+        assert target["measured"] == pytest.approx(np.median([r[column] for r in rows]))
+        assert target["met"] == (target["measured"] <= float(target["target"].split()[-1]))

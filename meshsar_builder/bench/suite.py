@@ -17,8 +17,12 @@ Parts:
   with `--device cuda` on a GPU in fp32 and mixed precision (bench_trainer);
 - radar-loss: the radar losses' landscapes (minimum, monotone rise, gradient cosine)
   on 5 samples of a build, $MESHSAR_BENCH_DATA or build/demo (bench/radar_loss.py;
-  $MESHSAR_BENCH_SAMPLES, $MESHSAR_BENCH_LOSSES = focused,raw bound a run).
-Every part runs its measurements with one BLAS thread, like the stages do.
+  $MESHSAR_BENCH_SAMPLES, $MESHSAR_BENCH_LOSSES = focused,raw bound a run);
+- speckle: the diffuse component's statistics and cost (bench/speckle.py);
+- inference: seconds per sample for `meshsar fit` and `--refine` on 3 shape-model test
+  samples of the same build, against their budgets (bench/inference.py).
+The geometry, pipeline and radar parts run with one BLAS thread, like the stages do; the trainer
+and inference parts with torch's default threads, like training and `meshsar fit` do.
 """
 
 from __future__ import annotations
@@ -39,8 +43,8 @@ from meshsar_builder.pipeline.io import read_json, write_json
 from meshsar_builder.pipeline.recipe import load
 
 DEMO = Path(__file__).resolve().parents[2] / "manifests" / "demo.toml"
-PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss", "speckle")
-# The radar-loss and speckle parts' build (format 2, with a loss grid): MESHSAR_BENCH_DATA, else build/demo.
+PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss", "speckle", "inference")
+# The radar-loss, speckle and inference parts' build (format 2, with a loss grid): MESHSAR_BENCH_DATA, else build/demo.
 RADAR_LOSS_DATA = "build/demo"
 
 
@@ -337,10 +341,16 @@ def bench_speckle(out: Path) -> dict:
     return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA), (surface.verts, surface.faces))
 
 
+def bench_inference(out: Path) -> dict:
+    from meshsar_builder.bench.inference import run
+
+    return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA))
+
+
 def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
     """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision)."""
     out.mkdir(parents=True, exist_ok=True)
     benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline,
                "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss,
-               "speckle": bench_speckle}
+               "speckle": bench_speckle, "inference": bench_inference}
     return {part: benches[part](out) for part in parts}
