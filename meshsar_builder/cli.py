@@ -94,12 +94,13 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from meshsar_builder.trainer.evaluate import evaluate
+    from meshsar_builder.trainer.evaluate import eval_folder, evaluate
 
     refuse_if_locked(args.data)
+    refine = args.refine or args.refine_echo is not None
     evaluate(args.run, args.data, args.split, renders=args.renders, device=args.device, checkpoint=args.checkpoint,
-             compare=tuple(args.compare), samples=args.samples, refine=args.refine)
-    print((Path(args.run) / f"eval-{args.split}{'-refine' if args.refine else ''}" / "summary.md").read_text())
+             compare=tuple(args.compare), samples=args.samples, refine=refine, refine_echo=args.refine_echo)
+    print((Path(args.run) / eval_folder(args.split, refine, args.refine_echo) / "summary.md").read_text())
     return 0
 
 
@@ -237,6 +238,10 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--refine", action="store_true",
                    help="also refine each predicted mesh against the sample's recorded echo (the run's [refine]); "
                         "writes RUN/eval-<split>-refine with a paired test, before against after")
+    e.add_argument("--refine-echo", metavar="DATA2",
+                   help="refine against the recorded echo of the same sample in build DATA2 (the same recipe with "
+                        "other radar settings, e.g. diffuse = false); implies --refine; writes "
+                        "RUN/eval-<split>-refine-<DATA2 name>")
     add_run_options(e)
     e.set_defaults(func=cmd_evaluate)
     fi = sub.add_parser("fit", help="fit the build's shape model to each test sample's recorded echo alone "

@@ -130,3 +130,22 @@ def test_evaluate_refine_tables_before_and_after_with_a_paired_test(tiny_run):
         assert paired["sar2mesh"][column]["p"] == pytest.approx(expected) and paired["sar2mesh"][column]["n"] == len(ids)
         assert paired["sar2mesh"][column]["median_difference"] == pytest.approx(np.median(np.subtract(after, before)))
     assert not (run / "eval-seed-0" / "refine.json").exists()  # the plain evaluation's folder is left alone
+
+
+def test_evaluate_refine_reads_the_echo_of_another_build_of_the_same_samples(tiny_run, tmp_path):
+    import shutil
+
+    data, run = tiny_run
+    E.evaluate(run, data, renders=0, samples=500, progress=False, refine=True)
+    twin = shutil.copytree(data, tmp_path / "twin")  # the same samples, echoes and all
+    E.evaluate(run, data, renders=0, samples=500, progress=False, refine=True, refine_echo=twin)
+
+    def refined(folder):
+        with open(run / folder / "metrics.csv", newline="") as f:
+            return sorted((r["sample_id"], r["assd_mm"]) for r in csv.DictReader(f) if r["method"] == "sar2mesh+refine")
+
+    assert E.eval_folder("seed-0", True, twin) == "eval-seed-0-refine-twin"
+    assert refined("eval-seed-0-refine-twin") == refined("eval-seed-0-refine")
+    other = make_dataset(tmp_path / "other", radii=(40, 60))  # other meshes under the same ids
+    with pytest.raises(InputError, match=r"other: sample s\d's mesh differs"):
+        E.evaluate(run, data, renders=0, samples=500, progress=False, refine=True, refine_echo=other)

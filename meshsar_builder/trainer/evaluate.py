@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from meshsar_builder.dataset.card import plt, render_views, save_figure
@@ -144,7 +145,7 @@ def training_shapes(run: Path, data: Path, split: str) -> list[tuple[np.ndarray,
 def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, split: str = "seed-0",
              renders: int | None = None, device: str = "cpu", samples: int = 20_000, progress: bool = True,
              checkpoint: str = "best", compare: tuple[str | os.PathLike, ...] = (), baselines: bool = True,
-             refine: bool = False) -> dict:
+             refine: bool = False, refine_echo: str | os.PathLike | None = None) -> dict:
     """Evaluate a run (and the runs in `compare`) on the test split of `split`; returns the summary
     (see module docstring), written under RUN/eval-<split>.
 
@@ -154,7 +155,10 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
     each mesh model's prediction refined against the sample's recorded echo (refine.refine_mesh,
     the run's [refine]), as method `<method>+refine`, with a Wilcoxon signed-rank test per
     metric over the test samples, before against after, in refine.json; written under
-    RUN/eval-<split>-refine instead.
+    RUN/eval-<split>-refine instead. refine_echo: with refine, the recorded echo comes from this
+    build's sample of the same id instead (the same recipe's samples with other radar settings,
+    e.g. `diffuse = false`), while the network still reads `data`'s images; written under
+    RUN/eval-<split>-refine-<its folder name>.
     """
     run = Path(run)
     device = pick_device(device, 0)
@@ -173,6 +177,7 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         learned.append((method, net, views, [index["channels"].index(c) for c in inf["channels"]]))
         configs[method] = cfg
     dataset = MeshSARDataset(data, "test", seed=split_seed(split), noisy_loss_echo=refine)
+    echoes = _echo_source(data, index, refine_echo) if refine else None
     if refine:
         # mesh models only: an implicit model's surface has no topology to move
         refiners = {method: (net.topology(), sample_refiner(index, configs[method])) for method, net, *_ in learned
@@ -186,14 +191,14 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         gt = (sample["verts"].double().numpy(), sample["faces"].numpy())
         if refine:
             for method, (topology, refined) in refiners.items():
-                meshes[f"{method}+refine"] = (refined(meshes[method][0], topology, sample), meshes[method][1])
+                meshes[f"{method}+refine"] = (refined(meshes[method][0], topology, echoes(sample)), meshes[method][1])
         for method, (pv, pf) in {**meshes, **baselines}.items():
             metrics = mesh_metrics(pv, pf, *gt, samples=samples, seed=i)
             rows.append({"sample_id": sample["sample_id"], "source": sample["meta"].get("source", ""),
                          "subset": sample["meta"].get("subset", ""), "method": method, **metrics})
         if renders is None or len(pairs) < renders:
             pairs.append((sample["sample_id"], [("truth", gt), *meshes.items()]))
-    out = run / f"eval-{split}{'-refine' if refine else ''}"
+    out = run / eval_folder(split, refine, refine_echo)
     summary = summarise(rows)
     if refine:
         write_json(out / "refine.json", refine_paired(rows))
@@ -204,3 +209,31 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
     if pairs:
         render_gallery(pairs, [index["views"][k] for k in learned[0][2]], float(index["fov_mm"]), out / "renders.png")
     return summary
+
+
+def eval_folder(split: str, refine: bool = False, refine_echo: str | os.PathLike | None = None) -> str:
+    """The folder under RUN that evaluate writes: eval-<split>[-refine[-<refine_echo's name>]]."""
+    return f"eval-{split}{'-refine' if refine else ''}{f'-{Path(refine_echo).name}' if refine and refine_echo else ''}"
+
+
+def _echo_source(data: Path, index: dict, other: str | os.PathLike | None):
+    """sample -> the sample whose recorded echo refinement reads: itself, or (other given) the
+    sample of the same id in build `other`, checked to hold the same mesh on the same loss grid."""
+    if other is None:
+        return lambda sample: sample
+    other = Path(other)
+    echoes = MeshSARDataset(other, None, noisy_loss_echo=True)
+    if echoes.index.get("loss_grid") != index.get("loss_grid"):
+        raise InputError(f"{other}: its loss grid differs from {data}'s; refinement needs the same grid")
+    position = {sid: i for i, sid in enumerate(echoes.ids)}
+
+    def echo_sample(sample: dict) -> dict:
+        sid = sample["sample_id"]
+        if sid not in position:
+            raise InputError(f"{other}: has no sample {sid} (of {data}); build the same recipe there")
+        found = echoes[position[sid]]
+        if not torch.equal(found["verts"], sample["verts"]):
+            raise InputError(f"{other}: sample {sid}'s mesh differs from {data}'s: not the same recipe's samples")
+        return found
+
+    return echo_sample
