@@ -203,7 +203,8 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
     if refine:
         write_json(out / "refine.json", refine_paired(rows))
     write_csv(out / "metrics.csv", rows)
-    title = f"# {config.name} on {data.name} ({split}, test; {info['checkpoint']}, epoch {info['epoch']})\n\n"
+    echo_note = f"; refined against {Path(refine_echo).name}'s echo" if refine and refine_echo else ""
+    title = f"# {config.name} on {data.name} ({split}, test; {info['checkpoint']}, epoch {info['epoch']}{echo_note})\n\n"
     write_bytes(out / "summary.md", (title + markdown(summary)).encode())
     write_json(out / "summary.json", summary)
     if pairs:
