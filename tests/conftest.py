@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import textwrap
 from pathlib import Path
 
@@ -15,11 +16,43 @@ ROOT = Path(__file__).resolve().parents[1]
 MANIFESTS = ROOT / "manifests"
 
 
+# Measured seconds per test file (`make test PYTEST_ARGS=--store-durations` updates it): the order
+# `make test` hands whole files to its processes in.
+DURATIONS = Path(__file__).with_name("durations.json")
+UNMEASURED_SLOW_S = 60.0  # a file not yet measured that has slow tests: among the long ones
+_file_seconds: dict[str, float] = {}  # this run's, for --store-durations
+
+
+def pytest_addoption(parser):
+    parser.addoption("--store-durations", action="store_true",
+                     help=f"update {DURATIONS.name} with the seconds each test file of this run took")
+
+
 def pytest_collection_modifyitems(session, config, items):
-    """Files with slow tests first: `make test` hands whole files to its processes in this
-    order, so the long ones start at once and do not leave one process running alone at the end."""
+    """The longest files first (xdist runs with --no-loadscope-reorder, so this order holds): the
+    processes take whole files as they free up, and no long file starts last to run alone."""
+    measured = json.loads(DURATIONS.read_text()) if DURATIONS.exists() else {}
     slow_files = {item.path for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.path not in slow_files)  # stable: order within a file kept
+
+    def seconds(item) -> float:
+        name = item.path.relative_to(ROOT).as_posix()
+        return measured.get(name, UNMEASURED_SLOW_S if item.path in slow_files else 0.0)
+
+    items.sort(key=lambda item: -seconds(item))  # stable: order within a file kept
+
+
+def pytest_runtest_logreport(report):
+    file = report.nodeid.split("::")[0]
+    _file_seconds[file] = _file_seconds.get(file, 0.0) + report.duration  # setup, call and teardown
+
+
+def pytest_sessionfinish(session):
+    """With --store-durations, the files this run took updated in DURATIONS (the others kept)."""
+    # the controller (or a run without xdist) sees every file's reports; workers see their own
+    if session.config.getoption("--store-durations") and not hasattr(session.config, "workerinput"):
+        table = {**(json.loads(DURATIONS.read_text()) if DURATIONS.exists() else {}),
+                 **{k: round(v, 1) for k, v in _file_seconds.items()}}
+        DURATIONS.write_text(json.dumps(dict(sorted(table.items(), key=lambda kv: -kv[1])), indent=1) + "\n")
 
 
 def save_nifti(path: Path, data: np.ndarray, affine: np.ndarray | None = None) -> Path:
