@@ -33,7 +33,7 @@ def neighbours(faces):
     return adjacency
 
 
-def test_chamfer_matches_a_double_loop_and_vanishes_on_identical_sets():
+def test_chamfer_and_its_gradient_match_a_double_loop_and_it_vanishes_on_identical_sets():
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(17, 3)), rng.normal(size=(23, 3))
     forward = np.mean([min(np.sum((p - q) ** 2) for q in b) for p in a])
@@ -41,6 +41,16 @@ def test_chamfer_matches_a_double_loop_and_vanishes_on_identical_sets():
     got = L.chamfer(torch.tensor(a), torch.tensor(b)).item()
     assert got == pytest.approx(forward + backward, rel=1e-10)
     assert L.chamfer(torch.tensor(a), torch.tensor(a[::-1].copy())).item() == pytest.approx(0, abs=1e-12)
+    # the gradient on the points: each point pulled to its nearest target, each target's nearest point to it
+    expected = np.zeros_like(a)
+    for i, p in enumerate(a):
+        expected[i] += 2 * (p - b[np.argmin(((b - p) ** 2).sum(1))]) / len(a)
+    for q in b:
+        i = np.argmin(((a - q) ** 2).sum(1))
+        expected[i] += 2 * (a[i] - q) / len(b)
+    points = torch.tensor(a, requires_grad=True)
+    L.chamfer(points, torch.tensor(b)).backward()
+    np.testing.assert_allclose(points.grad.numpy(), expected, rtol=1e-10, atol=1e-14)
 
 
 def test_laplacian_loss_matches_a_loop(noisy_sphere):
