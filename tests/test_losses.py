@@ -33,14 +33,15 @@ def neighbours(faces):
     return adjacency
 
 
-def test_chamfer_and_its_gradient_match_a_double_loop_and_it_vanishes_on_identical_sets():
+@pytest.mark.parametrize("method", ["tree", "matrix"])
+def test_chamfer_and_its_gradient_match_a_double_loop_and_it_vanishes_on_identical_sets(method):
     rng = np.random.default_rng(0)
     a, b = rng.normal(size=(17, 3)), rng.normal(size=(23, 3))
     forward = np.mean([min(np.sum((p - q) ** 2) for q in b) for p in a])
     backward = np.mean([min(np.sum((p - q) ** 2) for p in a) for q in b])
-    got = L.chamfer(torch.tensor(a), torch.tensor(b)).item()
+    got = L.chamfer(torch.tensor(a), torch.tensor(b), method).item()
     assert got == pytest.approx(forward + backward, rel=1e-10)
-    assert L.chamfer(torch.tensor(a), torch.tensor(a[::-1].copy())).item() == pytest.approx(0, abs=1e-12)
+    assert L.chamfer(torch.tensor(a), torch.tensor(a[::-1].copy()), method).item() == pytest.approx(0, abs=1e-12)
     # the gradient on the points: each point pulled to its nearest target, each target's nearest point to it
     expected = np.zeros_like(a)
     for i, p in enumerate(a):
@@ -49,8 +50,16 @@ def test_chamfer_and_its_gradient_match_a_double_loop_and_it_vanishes_on_identic
         i = np.argmin(((a - q) ** 2).sum(1))
         expected[i] += 2 * (a[i] - q) / len(b)
     points = torch.tensor(a, requires_grad=True)
-    L.chamfer(points, torch.tensor(b)).backward()
+    L.chamfer(points, torch.tensor(b), method).backward()
     np.testing.assert_allclose(points.grad.numpy(), expected, rtol=1e-10, atol=1e-14)
+
+
+def test_nearest_pairs_agree_between_the_tree_and_the_matrix_on_float32_clouds():
+    rng = np.random.default_rng(1)
+    a, b = torch.tensor(rng.normal(size=(2000, 3)), dtype=torch.float32), torch.tensor(rng.normal(size=(1500, 3)),
+                                                                                       dtype=torch.float32)
+    for tree, matrix in zip(L.nearest_pairs(a, b, "tree"), L.nearest_pairs(a, b, "matrix")):
+        assert tree.dtype == matrix.dtype == torch.long and torch.equal(tree, matrix)
 
 
 def test_laplacian_loss_matches_a_loop(noisy_sphere):

@@ -146,12 +146,22 @@ def occlusion_mask(verts: torch.Tensor, faces: torch.Tensor, probes) -> torch.Te
     radar.visibility.visibility per mesh of the batch: the fraction of probes a facet faces
     and sees unoccluded. No gradient (it is piecewise constant in the vertices).
     """
-    from meshsar_builder.radar.visibility import visibility  # Embree; only where a mask is asked for
+    return occlusion_masks(verts, faces, [probes])[0]
+
+
+def occlusion_masks(verts: torch.Tensor, faces: torch.Tensor, probe_sets) -> list[torch.Tensor]:
+    """occlusion_mask for each probe set (P_i, 3) (one per view), one Embree scene per mesh for all of them."""
+    from meshsar_builder.radar.visibility import embree_intersector, visibility  # Embree: only where asked
 
     flat = verts.detach().reshape(-1, *verts.shape[-2:]).to("cpu", torch.float64).numpy()
     faces_np = faces.cpu().numpy()
-    masks = [visibility(v, faces_np, np.asarray(probes, dtype=np.float64))[0] for v in flat]
-    return torch.as_tensor(np.stack(masks), dtype=verts.dtype, device=verts.device).reshape(*verts.shape[:-2], -1)
+    probe_sets = [np.asarray(probes, dtype=np.float64) for probes in probe_sets]
+    masks = []  # per mesh, (views, F)
+    for v in flat:
+        scene = embree_intersector(v, faces_np)
+        masks.append([visibility(v, faces_np, probes, scene)[0] for probes in probe_sets])
+    stacked = torch.as_tensor(np.asarray(masks), dtype=verts.dtype, device=verts.device)  # (meshes, views, F)
+    return [stacked[:, k].reshape(*verts.shape[:-2], -1) for k in range(len(probe_sets))]
 
 
 def echo_torch(verts: torch.Tensor, faces: torch.Tensor, positions, freqs, radar: RadarParams,

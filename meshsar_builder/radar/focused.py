@@ -289,10 +289,13 @@ def focused_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor
 
     verts (B, n, 3) mm; faces (m, 3) long; targets (B, V, S, H, W) from setup.target.
     """
+    from meshsar_builder.radar.differentiable import occlusion_masks
+
     faces = torch.as_tensor(faces, dtype=torch.long, device=verts.device)
+    masks = occlusion_masks(verts, faces, setup.probes[: targets.shape[1]])  # V x (B, m), one scene a mesh
     terms = []
     for v in range(targets.shape[1]):
-        pred = setup.predicted(verts, faces, v).flatten(1)  # (B, N)
+        pred = setup.predicted(verts, faces, v, masks[v]).flatten(1)  # (B, N)
         tgt = targets[:, v].to(pred).flatten(1)
         cos = (pred * tgt).sum(1) / (pred.norm(dim=1) * tgt.norm(dim=1)).clamp_min(1e-30)
         terms.append(1 - cos)

