@@ -60,6 +60,8 @@ def test_nearest_pairs_agree_between_the_tree_and_the_matrix_on_float32_clouds()
                                                                                        dtype=torch.float32)
     for tree, matrix in zip(L.nearest_pairs(a, b, "tree"), L.nearest_pairs(a, b, "matrix")):
         assert tree.dtype == matrix.dtype == torch.long and torch.equal(tree, matrix)
+    with pytest.raises(ValueError, match="method must be tree or matrix"):
+        L.nearest_pairs(a, b, "brute")
 
 
 def test_laplacian_loss_matches_a_loop(noisy_sphere):

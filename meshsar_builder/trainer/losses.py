@@ -90,6 +90,8 @@ def nearest_pairs(points: torch.Tensor, target: torch.Tensor, method: str | None
     distance matrix, one kernel on a GPU); default: tree on the CPU, matrix elsewhere.
     """
     method = method or ("tree" if points.device.type == "cpu" else "matrix")
+    if method not in ("tree", "matrix"):
+        raise ValueError(f"nearest_pairs: method must be tree or matrix, got {method!r}")
     with torch.no_grad():
         if method == "tree":
             p, t = points.detach().numpy(), target.detach().numpy()
