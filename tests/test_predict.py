@@ -132,13 +132,16 @@ def test_evaluate_refine_tables_before_and_after_with_a_paired_test(tiny_run):
     assert not (run / "eval-seed-0" / "refine.json").exists()  # the plain evaluation's folder is left alone
 
 
-def test_evaluate_refine_reads_the_echo_of_another_build_of_the_same_samples(tiny_run, tmp_path):
+def test_evaluate_refine_reads_the_echo_of_another_build_of_the_same_samples(tiny_run, tmp_path, capsys):
     import shutil
 
     data, run = tiny_run
     E.evaluate(run, data, renders=0, samples=500, progress=False, refine=True)
     twin = shutil.copytree(data, tmp_path / "twin")  # the same samples, echoes and all
-    E.evaluate(run, data, renders=0, samples=500, progress=False, refine=True, refine_echo=twin)
+    # by the CLI: --refine-echo implies --refine and prints the folder's summary
+    assert main(["evaluate", str(run), "--data", str(data), "--samples", "500", "--renders", "0",
+                 "--refine-echo", str(twin)]) == 0
+    assert "refined against twin's echo" in capsys.readouterr().out
 
     def refined(folder):
         with open(run / folder / "metrics.csv", newline="") as f:

@@ -170,3 +170,23 @@ def test_gradient_reaches_every_visible_vertex():
     facing = mesh.vertex_normals @ RP.view_frame("anterior")[2] > 0.3
     assert torch.isfinite(verts.grad).all()
     assert (verts.grad[torch.from_numpy(facing)].norm(dim=1) > 0).all()
+
+
+def test_occlusion_masks_of_several_views_share_a_scene_and_equal_each_views_own_mask():
+    """A batch of two meshes (the two-sphere scene and it shifted) seen from the anterior and the left:
+    one call for both views gives each view's occlusion_mask, (B, F) per view."""
+    from meshsar_builder.radar.visibility import visibility
+
+    front = trimesh.creation.icosphere(2, radius=20.0)
+    back = trimesh.creation.icosphere(2, radius=30.0)
+    verts = np.concatenate([front.vertices + [0, 40.0, 0], back.vertices])
+    faces = np.concatenate([front.faces, back.faces + len(front.vertices)])
+    batch = torch.tensor(np.stack([verts, verts + [5.0, 0, -3.0]]))
+    probes = [np.array([[0.0, 300.0, 0.0]]), np.array([[300.0, 0.0, 0.0], [300.0, 20.0, 0.0]])]
+    masks = RT.occlusion_masks(batch, torch.tensor(faces), probes)
+    assert len(masks) == 2 and all(m.shape == (2, len(faces)) for m in masks)
+    for view, probe in enumerate(probes):
+        np.testing.assert_array_equal(masks[view].numpy(), RT.occlusion_mask(batch, torch.tensor(faces), probe).numpy())
+        for b in range(2):  # and the production visibility of that mesh alone
+            np.testing.assert_array_equal(masks[view][b].numpy(), visibility(batch[b].numpy(), faces, probe)[0])
+    assert not torch.equal(masks[0], masks[1])  # the views see different facets

@@ -177,8 +177,8 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         learned.append((method, net, views, [index["channels"].index(c) for c in inf["channels"]]))
         configs[method] = cfg
     dataset = MeshSARDataset(data, "test", seed=split_seed(split), noisy_loss_echo=refine)
-    echoes = _echo_source(data, index, refine_echo) if refine else None
     if refine:
+        echoes = _echo_source(data, index, refine_echo)
         # mesh models only: an implicit model's surface has no topology to move
         refiners = {method: (net.topology(), sample_refiner(index, configs[method])) for method, net, *_ in learned
                     if hasattr(net, "topology")}
