@@ -26,7 +26,9 @@ label agreement) is a named failure, not a silent bad shape. Version 3: groupwis
 template; version 4: label agreement by face strip (landmarks.label_agreement), judged in
 the last round only; version 5: second-order NRICP stiffness and its schedule (nricp.py);
 version 7: landmarks with a confidence and a robust check, a divergence monitor with a
-retry, landmark residual judged, groupwise templates checked against their fits (issue 26).
+retry, landmark residual judged, groupwise templates checked against their fits (issue 26);
+version 10: the stiffest step on a coarse template, the landmark term left out of the
+preconditioner (nricp.py; issue 32).
 The rounds' files are made in geometry/groupwise.py; this stage is their plan and one call
 per item.
 """
@@ -105,4 +107,4 @@ def finish(ctx: Context, results: Results) -> None:
 
 # Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
 # adds the first-order term on folded regions).
-STAGE = Stage(name=NAME, version=9, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=10, plan=plan, run=run, finish=finish, again=again)

@@ -66,12 +66,20 @@ def test_interpolated_normals_are_radial_on_a_sphere():
                                M.vertex_normals(mesh.vertices, mesh.faces)[:20], atol=1e-12)
 
 
-def test_barycentric_coordinates_rebuild_the_point():
+def test_closest_barycentric_rebuilds_points_on_the_surface_and_projects_points_off_it():
+    from meshsar_builder.geometry.surface_map import closest_barycentric, interpolation_matrix
+
+    mesh = trimesh.creation.icosphere(3, radius=20.0)
     rng = np.random.default_rng(2)
-    tri = rng.normal(size=(50, 3, 3))
-    weights = rng.dirichlet(np.ones(3), 50)
-    points = np.einsum("nk,nkc->nc", weights, tri)
-    np.testing.assert_allclose(M.barycentric(points, tri), weights, atol=1e-9)
+    weights = rng.dirichlet(np.ones(3), len(mesh.faces))
+    points = np.einsum("nk,nkc->nc", weights, mesh.vertices[mesh.faces])
+    face, found = closest_barycentric(points, mesh.vertices, mesh.faces)
+    np.testing.assert_array_equal(face, np.arange(len(mesh.faces)))
+    np.testing.assert_allclose(found, weights, atol=1e-9)
+    # Off the surface: the weights give the closest surface point, as trimesh finds it.
+    off = points * rng.uniform(0.8, 1.2, (len(points), 1))
+    closest, _, _ = trimesh.proximity.closest_point(mesh, off)
+    np.testing.assert_allclose(interpolation_matrix(off, mesh.vertices, mesh.faces) @ mesh.vertices, closest, atol=1e-9)
 
 
 def test_pushed_through_vertex_self_intersects():

@@ -161,6 +161,8 @@ def test_choose_template_takes_the_median_volume_deterministically():
         ("groupwise_rounds", -1),
         ("groupwise_converge_mm", -0.1),
         ("groupwise_smoothing", -1),
+        ("coarse_steps", -1),
+        ("coarse_vertices", 10),
     ],
 )
 def test_params_reject_bad_values_naming_the_field(field, value):
@@ -349,7 +351,7 @@ def long_axis_warps(verts: np.ndarray, apex: np.ndarray, base: np.ndarray) -> di
     return {"twist": twist, "shear": shear, "bulge": bulge}
 
 
-def recover_warp(verts, faces, labels, template_vertices, warp, subject_edge_mm):
+def recover_warp(verts, faces, labels, template_vertices, warp, subject_edge_mm, params=PARAMS):
     """Register a simplified template of a labelled surface onto its warped, re-tessellated copy.
 
     Returns the vertex-by-vertex error (template size,) mm against the known map and the report."""
@@ -357,7 +359,7 @@ def recover_warp(verts, faces, labels, template_vertices, warp, subject_edge_mm)
     t_labels = transfer_labels(verts, labels, t_verts)
     s_verts, s_faces = remesh(warp(verts), faces, RemeshParams(edge_mm=subject_edge_mm))
     s_labels = transfer_labels(warp(verts), labels, s_verts)
-    fitted, report = register(t_verts, t_faces, s_verts, s_faces, PARAMS, np.random.default_rng(0), t_labels, s_labels)
+    fitted, report = register(t_verts, t_faces, s_verts, s_faces, params, np.random.default_rng(0), t_labels, s_labels)
     return np.linalg.norm(fitted - warp(t_verts), axis=1), report
 
 

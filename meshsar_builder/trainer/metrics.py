@@ -14,7 +14,8 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from meshsar_builder.geometry.intersections import self_intersecting_faces
-from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface
+from meshsar_builder.geometry.meshing import point_to_surface
+from meshsar_builder.geometry.surface_map import closest_barycentric
 from meshsar_builder.radar.visibility import embree_intersector
 from meshsar_builder.trainer.losses import mesh_edges, sample_surface, uniform_laplacian
 
@@ -96,26 +97,11 @@ def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
 
 
-def barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    """(N, 3) barycentric coordinates of points (N, 3) in triangles (N, 3, 3) (of the projection on
-    each triangle's plane; degenerate triangles give their first corner)."""
-    ab, ac, ap = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], points - tri[:, 0]
-    d00, d01, d11 = (np.einsum("nc,nc->n", x, y) for x, y in ((ab, ab), (ab, ac), (ac, ac)))
-    d20, d21 = np.einsum("nc,nc->n", ap, ab), np.einsum("nc,nc->n", ap, ac)
-    den = d00 * d11 - d01 * d01
-    safe = np.where(den > 0, den, 1.0)
-    s, t = np.where(den > 0, (d11 * d20 - d01 * d21) / safe, 0.0), np.where(den > 0, (d00 * d21 - d01 * d20) / safe, 0.0)
-    return np.stack([1 - s - t, s, t], axis=1)
-
-
 def interpolated_normals(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(N, 3) unit normals of a mesh at the closest surface point to each of points (N, 3),
     interpolated barycentrically from its vertex normals: smooth across edges, and exactly
     a vertex's normal at that vertex."""
-    _, face = point_to_surface(points, verts, faces)
-    tri = verts[faces[face]]  # (N, 3, 3)
-    closest, _ = closest_on_triangles(points, tri)
-    weights = barycentric(closest, tri)  # (N, 3)
+    face, weights = closest_barycentric(points, verts, faces)  # (N,), (N, 3)
     normals = np.einsum("nk,nkc->nc", weights, vertex_normals(verts, faces)[faces[face]])
     return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
 
