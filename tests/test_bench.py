@@ -49,6 +49,17 @@ def test_recipe_bench_accounts_for_the_build(tmp_path, capsys):
     assert all(t["met"] == (t["measured"] <= float(t["target"].removeprefix("<= "))) for t in targets.values())
 
 
+def test_scaling_efficiency_is_judged_per_backend_with_both_runs():
+    from meshsar_builder.bench.suite import scaling
+
+    result = scaling({"local-1": {"wall_seconds": 100.0}, "local-2": {"wall_seconds": 55.0},
+                      "dask-1": {"wall_seconds": 120.0}, "dask-2": {"wall_seconds": 70.0}})
+    assert result["local"]["speedup_2_workers"] == pytest.approx(100 / 55)
+    assert result["local"]["efficiency_2_workers"] == pytest.approx(100 / 110) and result["local"]["met"]
+    assert result["dask"]["efficiency_2_workers"] == pytest.approx(120 / 140) and not result["dask"]["met"]
+    assert scaling({"local-1": {"wall_seconds": 1.0}}) == {}  # no 2-worker run: nothing judged
+
+
 def test_recipe_goes_with_the_pipeline_part(capsys):
     assert main(["bench", "radar", "--recipe", str(MANIFESTS / "smoke.toml")]) == 2
     assert "--recipe goes with the pipeline part" in capsys.readouterr().err
