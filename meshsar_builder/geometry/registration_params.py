@@ -90,9 +90,9 @@ class RegistrationParams:
     coarse_steps: how many of the stiffest stiffness steps (at most all but the last) run on the
         template simplified to coarse_vertices vertices, whose transforms then start the rest
         at full resolution (nricp._coarse_start); only for templates of at least twice
-        coarse_vertices; 0: none. One step: the second on the coarse template too cost up to
-        0.09 mm of correspondence on the phantom heart's known warps (twist), the first
-        0.005 mm on average.
+        coarse_vertices; 0: none. Default 1: the first step coarse cost 0.005 mm of
+        correspondence on the phantom heart's known warps on average, the second coarse as
+        well up to 0.09 mm more (twist).
     """
 
     template: str = "median"
