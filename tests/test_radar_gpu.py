@@ -225,12 +225,18 @@ def test_bench_gpu_row_is_skipped_with_a_reason_or_filled(monkeypatch):
 
 
 @pytest.mark.slow  # starts a process cluster: ~10-20 s on 2 cores
-def test_a_local_dask_cluster_can_take_gpu_items():
-    """`--scheduler local:N` workers share this machine's GPUs, so each declares one (a CUDA build can use them)."""
+def test_a_local_dask_cluster_can_take_gpu_items_and_keeps_the_allocators_defaults():
+    """`--scheduler local:N` workers share this machine's GPUs, so each declares one (a CUDA build can
+    use them); and they run without Dask's MALLOC_TRIM_THRESHOLD_ (it cost their items ~15 % more CPU),
+    with its one-thread settings kept."""
+    import os
+
     from meshsar_builder.pipeline.runner import DaskPool
 
     pool = DaskPool("local:1")
     try:
         assert [have.get("GPU") for have in pool.worker_resources().values()] == [1]
+        environ = pool.client.run(lambda: {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")})
+        assert list(environ.values()) == [{"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": "1"}]
     finally:
         pool.close()
