@@ -388,3 +388,59 @@ def test_labelled_smooth_surface_known_warp_is_recovered_vertex_by_vertex(labell
     error, report = recover_warp(verts, faces, labels, 1500, warps[warp], 2.5)
     assert_warp_recovered(error, report)
     accept(report, RegistrationParams())
+
+
+# The coarse start (nricp._coarse_start)
+
+
+@pytest.fixture(scope="module")
+def small_pair():
+    """A ~640-vertex ellipsoid and a smoothly bulged, re-tessellated copy: quick fits."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    ellipsoid = sphere.vertices * (30.0, 22.0, 18.0)
+    bulged = ellipsoid + np.c_[2 * np.sin(ellipsoid[:, 1] / 10), np.zeros(len(ellipsoid)), np.zeros(len(ellipsoid))]
+    subject = remesh(bulged, sphere.faces, RemeshParams(edge_mm=3.0))
+    return ellipsoid, sphere.faces, subject
+
+
+def test_coarse_start_runs_the_stiffest_steps_coarse_and_never_all_of_them(small_pair):
+    from meshsar_builder.geometry.nricp import nricp
+
+    verts, faces, (s_verts, s_faces) = small_pair
+    coarse = RegistrationParams(coarse_steps=2, coarse_vertices=200)
+    fitted, summary = nricp(verts, faces, s_verts, s_faces, coarse)
+    assert summary["coarse"]["used"] and summary["coarse"]["steps"] == 2
+    assert summary["steps_kept"] == summary["steps"] == len(coarse.stiffness)
+    assert len(summary["step_distances_mm"]) == len(coarse.stiffness)  # the coarse steps' first
+    assert np.abs(fitted).max() < 100  # a fit of the subject, not a runaway
+    # A one-step schedule has nothing left for full resolution: no coarse stage at all.
+    one = RegistrationParams(stiffness=(0.001,), normal_weight=(0.0,), frame_steps=1, coarse_steps=3,
+                             coarse_vertices=200)
+    assert "coarse" not in nricp(verts, faces, s_verts, s_faces, one)[1]
+    # Too few vertices to coarsen (fewer than twice coarse_vertices): none either.
+    assert "coarse" not in nricp(verts, faces, s_verts, s_faces, RegistrationParams(coarse_vertices=400))[1]
+
+
+def test_a_coarse_copy_that_cannot_be_made_falls_back_to_the_full_schedule(small_pair, monkeypatch):
+    import meshsar_builder.geometry.nricp as N
+
+    verts, faces, (s_verts, s_faces) = small_pair
+    params = RegistrationParams(coarse_steps=1, coarse_vertices=200)
+
+    def broken(*args):
+        raise MeshError("surface simplified to 200 vertices: 3 self-intersecting faces")
+
+    monkeypatch.setattr(N, "simplify", broken)
+    full, summary = N.nricp(verts, faces, s_verts, s_faces, params)
+    assert summary["coarse"] == {"used": False, "reason": "surface simplified to 200 vertices: 3 self-intersecting faces"}
+    assert summary["steps_kept"] == len(params.stiffness)
+    reference, _ = N.nricp(verts, faces, s_verts, s_faces, RegistrationParams(coarse_steps=0))
+    np.testing.assert_array_equal(full, reference)  # exactly the full-resolution fit
+
+
+def test_frame_fits_coarsen_only_the_whole_schedule():
+    from meshsar_builder.geometry.tracking import frame_params
+
+    params = RegistrationParams(coarse_steps=1)
+    assert frame_params(params).coarse_steps == 0  # the soft steps of a warm start
+    assert frame_params(params, len(params.stiffness)).coarse_steps == 1
