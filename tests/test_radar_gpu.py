@@ -225,7 +225,7 @@ def test_bench_gpu_row_is_skipped_with_a_reason_or_filled(monkeypatch):
 
 
 @pytest.mark.slow  # starts a process cluster: ~10-20 s on 2 cores
-def test_a_local_dask_cluster_can_take_gpu_items_and_keeps_the_allocators_defaults():
+def test_a_local_dask_cluster_can_take_gpu_items_and_keeps_the_allocators_defaults(monkeypatch):
     """`--scheduler local:N` workers share this machine's GPUs, so each declares one (a CUDA build can
     use them); and they run without Dask's MALLOC_TRIM_THRESHOLD_ (it cost their items ~15 % more CPU),
     with its one-thread settings kept."""
@@ -233,6 +233,9 @@ def test_a_local_dask_cluster_can_take_gpu_items_and_keeps_the_allocators_defaul
 
     from meshsar_builder.pipeline.runner import DaskPool
 
+    # As in a `meshsar build` process: a Dask cluster started earlier in this test process has
+    # written its nanny's variables into os.environ, and spawned workers inherit them.
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
     pool = DaskPool("local:1")
     try:
         assert [have.get("GPU") for have in pool.worker_resources().values()] == [1]

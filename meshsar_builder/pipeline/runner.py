@@ -252,13 +252,13 @@ class DaskPool:
             # freed memory back at once, and every item's large arrays fault their pages in
             # anew. Measured on the pipeline bench's recipe, 2 workers: the workers' CPU 245 s
             # with it, 213 s without (the local pool's: 202 s), the build 142.6 -> 122.4 s.
-            # So the workers get the allocator's own defaults, as the local pool's have.
-            environ = {key: value for key, value in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
-                       if key != "MALLOC_TRIM_THRESHOLD_"}
+            # So the workers get the allocator's own defaults, as the local pool's have (None
+            # unsets a variable there). A value already in this process's environment still goes
+            # through: Dask's nannies also write their variables into the starting process's.
             # Every worker of a LocalCluster runs on this machine and sees its GPUs, as a local
             # pool's would: each declares one, so items that ask for a GPU (a CUDA radar) run
             # here too, one per worker; Stage.check still tests that CUDA is really there.
-            with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
                 self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                             dashboard_address=None, resources={"GPU": 1})
             self.client = Client(self.cluster)
