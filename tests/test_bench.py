@@ -79,9 +79,13 @@ def test_trainer_bench_times_a_training_step(amp, monkeypatch):
     config = parse_config(
         'name = "tiny"\n[data]\nbatch_size = 2\n[model]\nencoder_channels = [4, 8]\nhidden = 8\nblocks = 1\n'
         'stage_scales = [[1], [0]]\ntemplate_level = 1\n[radar_loss]\nantennas = 2\n')
-    monkeypatch.setattr(BT, "REPEATS", 1)
-    for radar_on in (False, True):  # on a CPU amp is bfloat16 autocast, as train() runs it
-        assert 0 < BT.step_ms(config, radar_on, geometry, batch, torch.device("cpu"), amp) < 60_000
+    monkeypatch.setattr(BT, "STEPS", 2)
+    timings = BT.step_timings(config, geometry, batch, torch.device("cpu"), amp)  # on a CPU amp is bfloat16 autocast
+    assert [len(timings[kind]) for kind in ("off", "on")] == [2, 2]
+    assert all(0 < ms < 60_000 for kind in ("off", "on") for ms in timings[kind])
+    summary = BT.step_summary({"off": [100.0, 200.0, 100.0], "on": [150.0, 260.0, 180.0]})
+    assert summary["ms_per_step"] == 100.0 and summary["ms_per_step_with_radar"] == 180.0
+    assert summary["radar_step_ratio"] == 1.5  # the median of 1.5, 1.3, 1.8: pairs, not the medians' ratio
 
 
 def test_trainer_bench_on_cuda_needs_cuda(tmp_path, capsys):

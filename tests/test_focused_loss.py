@@ -12,7 +12,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import meshsar_builder.radar.params as RP  # noqa: E402
-from meshsar_builder.radar.focused import FocusedParams, FocusedSetup, focused_loss  # noqa: E402
+from meshsar_builder.radar.focused import FocusedParams, FocusedSetup, fixed_convolution, focused_loss  # noqa: E402
 from meshsar_builder.trainer import losses as L  # noqa: E402
 from meshsar_builder.trainer.model import icosphere_levels  # noqa: E402
 
@@ -59,6 +59,65 @@ class _quiet:
 
     def __exit__(self, *exc):
         self._w.__exit__(*exc)
+
+
+def test_splat_is_the_trilinear_loop(scene):
+    """Every channel's weight shared among the 8 voxels around its point as a loop does it, outside voxels dropped."""
+    setup = scene["setup"]
+    rng = np.random.default_rng(1)
+    s, sizes = setup.shape[0], setup.padded
+    # points across the grid and beyond its ends on every axis, and one exactly on a voxel
+    coords = rng.uniform(-1.3, 1.3, (2, 40, 3)) * setup.params.half_extent_mm
+    coords[0, 0] = [setup.u[3], setup.u[5], setup.w[2]]
+    weights = rng.uniform(0.5, 2.0, (2, 3, 40))
+    grid = setup.splat(torch.as_tensor(coords), torch.as_tensor(weights)).numpy()
+    expected = np.zeros((2, 3, *sizes))
+    for b in range(2):
+        for k in range(40):
+            u, v, w = coords[b, k]
+            index = np.array([(w - setup.w[0]) / setup.params.range_mm + s // 2,
+                              (v - setup.u[0]) / setup.params.lateral_mm, (u - setup.u[0]) / setup.params.lateral_mm])
+            low = np.floor(index).astype(int)
+            for corner in np.ndindex(2, 2, 2):
+                at = low + corner
+                if np.all(at >= 0) and np.all(at < sizes):
+                    share = np.prod([f if c else 1 - f for f, c in zip(index - low, corner)])
+                    expected[(b, slice(None), *at)] += share * weights[b, :, k]
+    np.testing.assert_allclose(grid, expected, rtol=1e-12, atol=1e-12)
+    assert grid[0, :, 2 + s // 2, 5, 3] == pytest.approx(weights[0, :, 0])  # on a voxel: all of it there
+
+
+def test_fixed_convolution_is_the_circular_sum_and_its_gradient_the_adjoint():
+    """Against a direct circular convolution on a tiny grid, and torch's gradcheck (float64) for the backward."""
+    rng = np.random.default_rng(2)
+    shape = (4, 3, 6)
+    kernels = rng.standard_normal((2, *shape))
+    volumes = rng.standard_normal((2, 2, *shape))  # (inputs, batch, *shape)
+    transfers = tuple(torch.as_tensor(np.fft.rfftn(k)) for k in kernels)
+    out = fixed_convolution(tuple(torch.as_tensor(v) for v in volumes), transfers, shape).numpy()
+    expected = np.zeros((2, *shape))
+    for i in range(2):
+        for n in np.ndindex(shape):
+            for m in np.ndindex(shape):
+                shift = tuple((a - b) % size for a, b, size in zip(n, m, shape))
+                expected[(slice(None), *n)] += kernels[i][shift] * volumes[i][(slice(None), *m)]
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+    inputs = tuple(torch.as_tensor(v).requires_grad_(True) for v in volumes)
+    assert torch.autograd.gradcheck(lambda *x: fixed_convolution(x, transfers, shape), inputs)
+
+
+def test_visibilities_of_several_views_are_each_views_own(scene):
+    import meshsar_builder.radar.visibility as RV
+
+    verts, faces = scene["verts"], scene["faces"].numpy()
+    verts = verts + np.where(verts[:, :1] > 0, 0.0, 20.0) * [0.0, 0.0, 1.0]  # a step: some facets occlude others
+    probes = [RP.probe_points(SCAN, view) for view in SCAN.views]
+    together, rays = RV.visibilities(verts, faces, probes)
+    alone = [RV.visibility(verts, faces, p) for p in probes]
+    assert rays == sum(count for _, count in alone)
+    for mine, (theirs, _) in zip(together, alone):
+        np.testing.assert_array_equal(mine, theirs)
+    assert any(0 < f.mean() < 0.5 and np.any((f > 0) & (f < 1)) for f in together)
 
 
 def loss_at(scene, verts, targets, grad=False):

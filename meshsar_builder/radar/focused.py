@@ -178,8 +178,9 @@ class FocusedSetup:
                 "frames": torch.as_tensor(self.frames, dtype=dtype, device=device),
                 "psf": torch.as_tensor(self.psf_transfer, dtype=torch.complex64 if dtype == torch.float32
                                        else torch.complex128, device=device),
-                "psf_power": torch.as_tensor(self.psf_power_transfer, dtype=torch.complex64 if dtype == torch.float32
-                                             else torch.complex128, device=device),
+                "psf_power_blur": torch.as_tensor(self.psf_power_transfer * self.blur,
+                                                  dtype=torch.complex64 if dtype == torch.float32 else torch.complex128,
+                                                  device=device),
                 "blur": torch.as_tensor(self.blur, dtype=dtype, device=device),
             }
         return self._torch[key]
@@ -230,31 +231,37 @@ class FocusedSetup:
         return mean_power_per_area(self.radar) * areas * visibility**2 * cos**2 * (z0 * z0 / r2) ** 2
 
     def splat(self, coords: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        """Trilinear splat of weights (B, F) at view coordinates (B, F, 3) into (B, 2S, H, W), centred along w."""
-        s, h, wd = self.shape
-        batch = coords.shape[0]
-        # fractional voxel indices along (w, v, u); the padded w axis starts s // 2 earlier
-        iw = (coords[..., 2] - self.w[0]) / self.params.range_mm + s // 2
-        iv = (coords[..., 1] - self.u[0]) / self.params.lateral_mm
-        iu = (coords[..., 0] - self.u[0]) / self.params.lateral_mm
+        """Trilinear splat of weights (B, C, F) at view coordinates (B, F, 3) into (B, C, 2S, H, W), centred along w.
+
+        C channels share the facets' positions (the specular and diffuse parts); the eight
+        corners of every facet and channel go in one scatter_add.
+        """
+        s = self.shape[0]
+        batch, channels = weights.shape[:2]
         sizes = self.padded
-        out = torch.zeros(batch, sizes[0] * sizes[1] * sizes[2], dtype=weights.dtype, device=weights.device)
-        base = [x.detach().floor() for x in (iw, iv, iu)]
-        frac = [x - b for x, b in zip((iw, iv, iu), base)]
-        base = [b.long() for b in base]
-        for dw in (0, 1):
-            for dv in (0, 1):
-                for du in (0, 1):
-                    idx = [b + d for b, d in zip(base, (dw, dv, du))]
-                    wgt = weights
-                    for f, d in zip(frac, (dw, dv, du)):
-                        wgt = wgt * (f if d else 1 - f)
-                    inside = ((idx[0] >= 0) & (idx[0] < sizes[0]) & (idx[1] >= 0) & (idx[1] < sizes[1])
-                              & (idx[2] >= 0) & (idx[2] < sizes[2]))
-                    flat = (idx[0].clamp(0, sizes[0] - 1) * sizes[1] + idx[1].clamp(0, sizes[1] - 1)) * sizes[2] \
-                        + idx[2].clamp(0, sizes[2] - 1)
-                    out = out.scatter_add(1, flat, torch.where(inside, wgt, torch.zeros_like(wgt)))
-        return out.reshape(batch, *sizes)
+        # fractional voxel indices along (w, v, u); the padded w axis starts s // 2 earlier
+        position = torch.stack([(coords[..., 2] - self.w[0]) / self.params.range_mm + s // 2,
+                                (coords[..., 1] - self.u[0]) / self.params.lateral_mm,
+                                (coords[..., 0] - self.u[0]) / self.params.lateral_mm])  # (3, B, F)
+        base = position.detach().floor()
+        frac = position - base
+        base = base.long()
+        corner = torch.tensor([[dw, dv, du] for dw in (0, 1) for dv in (0, 1) for du in (0, 1)],
+                              device=base.device).T[:, :, None, None]  # (3, 8, 1, 1)
+        index = base[:, None] + corner  # (3, 8, B, F)
+        share = torch.where(corner.bool(), frac[:, None], 1 - frac[:, None]).prod(0)  # (8, B, F) trilinear weights
+        limit = torch.tensor(sizes, device=base.device)[:, None, None, None]
+        inside = ((index >= 0) & (index < limit)).all(0)  # (8, B, F)
+        index = torch.minimum(index.clamp_min(0), limit - 1)
+        flat = (index[0] * sizes[1] + index[1]) * sizes[2] + index[2]  # (8, B, F)
+        values = torch.where(inside, share, torch.zeros_like(share))[:, :, None] * weights  # (8, B, C, F)
+        flat = flat[:, :, None].expand_as(values)
+        offset = torch.arange(channels, device=base.device)[:, None] * (sizes[0] * sizes[1] * sizes[2])  # (C, 1)
+        out = torch.zeros(batch, channels * sizes[0] * sizes[1] * sizes[2], dtype=weights.dtype,
+                          device=weights.device)
+        out = out.scatter_add(1, (flat + offset).permute(1, 2, 0, 3).reshape(batch, -1),
+                              values.permute(1, 2, 0, 3).reshape(batch, -1))
+        return out.reshape(batch, channels, *sizes)
 
     def predicted(self, verts: torch.Tensor, faces: torch.Tensor, view: int, mask: torch.Tensor | None = None,
                   parts: tuple[str, ...] = ("specular", "diffuse")):
@@ -272,16 +279,46 @@ class FocusedSetup:
         faces, mask = faces[seen], mask[:, seen]
         centroids, normals, areas = facet_geometry_torch(verts, faces)
         weights, coords = self.weights(centroids, normals, areas * mask, view)
-        grid = self.splat(coords, weights * ("specular" in parts))
-        magnitude = torch.fft.irfftn(torch.fft.rfftn(grid, dim=(1, 2, 3)) * t["psf"], s=self.padded, dim=(1, 2, 3))
-        power = magnitude * magnitude
-        if self.radar.diffuse and "diffuse" in parts:  # the diffuse part's expected power beside the specular part's
-            diffuse = self.splat(coords, self.diffuse_weights(centroids, normals, areas, mask, view))
-            power = power + torch.fft.irfftn(torch.fft.rfftn(diffuse, dim=(1, 2, 3)) * t["psf_power"], s=self.padded,
-                                             dim=(1, 2, 3))
-        power = torch.fft.irfftn(torch.fft.rfftn(power, dim=(1, 2, 3)) * t["blur"], s=self.padded, dim=(1, 2, 3))
+        channels = [weights * ("specular" in parts)]
+        diffuse = self.radar.diffuse and "diffuse" in parts  # the diffuse part's expected power beside the specular
+        if diffuse:
+            channels.append(self.diffuse_weights(centroids, normals, areas, mask, view))
+        grids = self.splat(coords, torch.stack(channels, dim=1))  # (B, C, 2S, H, W)
+        magnitude = fixed_convolution((grids[:, 0],), (t["psf"],), self.padded)
+        volumes, transfers = (magnitude * magnitude,), (t["blur"],)
+        if diffuse:  # |h|^2 (scatterers add incoherently), then the blur
+            volumes, transfers = (*volumes, grids[:, 1]), (*transfers, t["psf_power_blur"])
+        power = fixed_convolution(volumes, transfers, self.padded)
         s = self.shape[0]
         return power[:, s // 2: s // 2 + s]
+
+
+class _FixedConvolution(torch.autograd.Function):
+    """fixed_convolution with its adjoint as the backward pass (see there)."""
+
+    @staticmethod
+    def forward(ctx, shape, transfers, *volumes):
+        ctx.shape, ctx.transfers = shape, transfers
+        spectrum = sum(torch.fft.rfftn(v, dim=(1, 2, 3)) * h for v, h in zip(volumes, transfers))
+        return torch.fft.irfftn(spectrum, s=shape, dim=(1, 2, 3))
+
+    @staticmethod
+    def backward(ctx, grad):
+        spectrum = torch.fft.rfftn(grad, dim=(1, 2, 3))
+        return (None, None, *(torch.fft.irfftn(spectrum * h.conj(), s=ctx.shape, dim=(1, 2, 3)) if wanted else None
+                              for h, wanted in zip(ctx.transfers, ctx.needs_input_grad[2:])))
+
+
+def fixed_convolution(volumes, transfers, shape) -> torch.Tensor:
+    """sum_i h_i (*) x_i: circular convolutions of real volumes x_i (B, *shape) with fixed real kernels h_i, (B, *shape).
+
+    transfers : each kernel's rfftn over the three volume axes, complex (shape[0], shape[1],
+    shape[2] // 2 + 1) or broadcastable to it. The gradient is the adjoint, correlation with
+    each kernel (conj(h_i) in frequency), one rfftn and one irfftn per input: torch's own
+    backward of rfftn goes through a full complex FFT and copies, twice the cost (the focused
+    loss's FFTs were a third of its forward and backward on the CPU).
+    """
+    return _FixedConvolution.apply(tuple(shape), tuple(transfers), *volumes)
 
 
 def focused_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup: FocusedSetup) -> torch.Tensor:

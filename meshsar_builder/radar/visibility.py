@@ -70,10 +70,22 @@ def visibility(verts: np.ndarray, faces: np.ndarray, probes: np.ndarray, interse
     centroid lifted by RAY_OFFSET_MM along the normal and counts as blocked if it
     hits any facet (probes lie outside the mesh, so nothing lies beyond them).
     """
+    fractions, rays = visibilities(verts, faces, [probes], intersector)
+    return fractions[0], rays
+
+
+def visibilities(verts: np.ndarray, faces: np.ndarray, probe_sets, intersector=None) -> tuple[list[np.ndarray], int]:
+    """visibility for several probe sets (P_i, 3) (one per view) in one batch of rays.
+
+    Returns a list of (F,) float, one per set, and the number of rays cast in all: one
+    Embree call for every view, as the trainer's masks need (its per-call overhead was a
+    third of their cost, view by view).
+    """
     if intersector is None:
         intersector = embree_intersector(verts, faces)
+    probe_sets = [np.asarray(probes, dtype=np.float64).reshape(-1, 3) for probes in probe_sets]
     centres, normals, _ = facet_geometry(verts, faces)
-    to_probe = np.asarray(probes, dtype=np.float64)[None, :, :] - centres[:, None, :]
+    to_probe = np.concatenate(probe_sets)[None, :, :] - centres[:, None, :]
     facing = np.einsum("fc,fpc->fp", normals, to_probe) > 0
     facet, probe = np.nonzero(facing)
     directions = to_probe[facet, probe]
@@ -82,6 +94,5 @@ def visibility(verts: np.ndarray, faces: np.ndarray, probes: np.ndarray, interse
     blocked = intersector.intersects_any(origins, directions)
     seen = np.zeros(facing.shape)
     seen[facet[~blocked], probe[~blocked]] = 1.0
-    return seen.mean(axis=1), len(facet)
-
-
+    bounds = np.cumsum([0] + [len(probes) for probes in probe_sets])
+    return [seen[:, a:b].mean(axis=1) for a, b in zip(bounds[:-1], bounds[1:])], len(facet)
