@@ -123,6 +123,32 @@ def test_intersector_is_embree():
     assert isinstance(RV.embree_intersector(verts, faces), RayMeshIntersector)
 
 
+def test_occlusion_query_answers_as_the_closest_hit_search():
+    """EmbreeOccluder (any hit) and trimesh's intersector (closest hit) block the same rays on
+    tori turned to every axis (each view sees one part of the ring behind another), from
+    every view's probes, and give the same visibility."""
+    rings = []
+    for k, axis in enumerate(np.eye(3)):
+        ring = trimesh.creation.torus(major_radius=40.0, minor_radius=12.0, major_sections=48, minor_sections=16)
+        ring.apply_transform(trimesh.geometry.align_vectors([0, 0, 1], axis))
+        ring.apply_translation(np.roll([120.0, 0, 0], k))
+        rings.append(ring)
+    mesh = trimesh.util.concatenate(rings)
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    radar = RP.RadarParams()
+    probe_sets = [RP.probe_points(radar, view) for view in radar.views]
+    closest, rays = RV.visibilities(verts, faces, probe_sets, RV.embree_intersector(verts, faces))
+    occluded, same_rays = RV.visibilities(verts, faces, probe_sets, RV.EmbreeOccluder(verts, faces))
+    assert rays == same_rays
+    for a, b in zip(closest, occluded):
+        np.testing.assert_array_equal(a, b)
+    facing = sum(np.count_nonzero(np.einsum("fc,fpc->fp", RV.facet_geometry(verts, faces)[1],
+                                            p[None] - RV.facet_geometry(verts, faces)[0][:, None]) > 0)
+                 for p in probe_sets)
+    assert sum(np.count_nonzero(v) for v in occluded) and rays == facing
+    assert any(np.any((v > 0) & (v < 1)) for v in occluded)  # partly hidden facets: occlusion happened
+
+
 def test_convex_sphere_is_about_half_visible_and_never_self_occluded():
     mesh = trimesh.creation.icosphere(3, radius=40.0)
     radar = RP.RadarParams()
