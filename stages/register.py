@@ -28,7 +28,8 @@ the last round only; version 5: second-order NRICP stiffness and its schedule (n
 version 7: landmarks with a confidence and a robust check, a divergence monitor with a
 retry, landmark residual judged, groupwise templates checked against their fits (issue 26);
 version 10: the stiffest step on a coarse template, the landmark term left out of the
-preconditioner (nricp.py; issue 32).
+preconditioner (nricp.py; issue 32); version 11: exact closest points from libigl's AABB tree
+(the coarse start's interpolation, the reports' distances, label agreement).
 The rounds' files are made in geometry/groupwise.py; this stage is their plan and one call
 per item.
 """
@@ -107,4 +108,4 @@ def finish(ctx: Context, results: Results) -> None:
 
 # Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
 # adds the first-order term on folded regions).
-STAGE = Stage(name=NAME, version=10, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=11, plan=plan, run=run, finish=finish, again=again)

@@ -85,4 +85,4 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
                                              for s in np.unique(labels) if s != 0}}
 
 
-STAGE = Stage(name=NAME, version=5, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=6, plan=plan, run=run)

@@ -8,7 +8,7 @@ import trimesh
 
 pytest.importorskip("torch")
 
-from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface  # noqa: E402
+from meshsar_builder.geometry.meshing import closest_among, point_to_surface  # noqa: E402
 from meshsar_builder.trainer import metrics as M  # noqa: E402
 
 
@@ -91,23 +91,28 @@ def test_pushed_through_vertex_self_intersects():
 
 
 def test_point_to_surface_matches_brute_force():
+    """libigl's tree against every face tried (this project's own point-triangle kernel), on a
+    bumpy ellipsoid, points inside and out, and points on its corners and edges (ties)."""
     mesh = trimesh.creation.icosphere(2, radius=20.0)
     rng = np.random.default_rng(3)
     verts = mesh.vertices * [1.0, 1.5, 0.7] + rng.normal(scale=0.5, size=mesh.vertices.shape)
-    points = rng.normal(scale=25.0, size=(300, 3))
+    points = np.concatenate([rng.normal(scale=25.0, size=(300, 3)), verts[:20],
+                             (verts[mesh.edges[:20, 0]] + verts[mesh.edges[:20, 1]]) / 2])
     dist, face = point_to_surface(points, verts, mesh.faces)
-    tri = verts[mesh.faces]
-    every = np.array([np.linalg.norm(closest_on_triangles(np.repeat(p[None], len(tri), 0), tri)[0] - p, axis=1)
-                      for p in points])  # (300, m)
-    np.testing.assert_allclose(dist, every.min(1), rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(every[np.arange(len(points)), face], dist, rtol=1e-12, atol=1e-12)
+    every = np.broadcast_to(np.arange(len(mesh.faces)), (len(points), len(mesh.faces)))
+    _, pick, d2 = closest_among(points, verts, mesh.faces, every)
+    np.testing.assert_allclose(dist, np.sqrt(d2), rtol=1e-12, atol=1e-12)
+    _, _, at_face = closest_among(points, verts, mesh.faces, face[:, None])  # the named face holds the distance
+    np.testing.assert_allclose(np.sqrt(at_face), dist, rtol=1e-12, atol=1e-12)
+    assert np.all(dist[300:] < 1e-9)
 
 
 def test_closest_point_regions_of_one_triangle():
-    tri = np.array([[[0.0, 0, 0], [2, 0, 0], [0, 2, 0]]] * 5)
+    verts = np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0]])
     points = np.array([[-1.0, -1, 1], [3, -1, 0], [1, -1, 0], [0.5, 0.5, 2], [2, 2, 0]])
     expected = np.array([[0.0, 0, 0], [2, 0, 0], [1, 0, 0], [0.5, 0.5, 0], [1, 1, 0]])
-    np.testing.assert_allclose(closest_on_triangles(points, tri)[0], expected, atol=1e-12)
+    closest, _, _ = closest_among(points, verts, np.array([[0, 1, 2]]), np.zeros((5, 1), dtype=np.int64))
+    np.testing.assert_allclose(closest, expected, atol=1e-12)
 
 
 def test_inside_matches_a_sphere_away_from_its_facets():

@@ -6,7 +6,7 @@ import numpy as np
 import scipy.sparse as sp
 import trimesh
 
-from meshsar_builder.geometry.meshing import closest_on_triangles, point_to_surface
+from meshsar_builder.geometry.meshing import closest_points
 
 
 def closest_barycentric(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -16,9 +16,8 @@ def closest_barycentric(points: np.ndarray, verts: np.ndarray, faces: np.ndarray
     (in [0, 1], summing to 1; weights @ verts[faces[face]] is the closest point).
     """
     verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces, dtype=np.int64)
-    _, face = point_to_surface(points, verts, faces)
+    _, face, closest = closest_points(points, verts, faces)
     tri = verts[faces[face]]  # (N, 3, 3)
-    closest, _ = closest_on_triangles(points, tri)
     # The closest point lies in its triangle: only rounding leaves [0, 1] (degenerate triangles).
     weights = np.clip(np.nan_to_num(trimesh.triangles.points_to_barycentric(tri, closest), nan=1 / 3), 0.0, 1.0)
     return face, weights / np.maximum(weights.sum(axis=1, keepdims=True), 1e-300)
