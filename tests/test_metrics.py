@@ -100,7 +100,7 @@ def test_point_to_surface_matches_brute_force():
                              (verts[mesh.edges[:20, 0]] + verts[mesh.edges[:20, 1]]) / 2])
     dist, face = point_to_surface(points, verts, mesh.faces)
     every = np.broadcast_to(np.arange(len(mesh.faces)), (len(points), len(mesh.faces)))
-    _, pick, d2 = closest_among(points, verts, mesh.faces, every)
+    _, _, d2 = closest_among(points, verts, mesh.faces, every)
     np.testing.assert_allclose(dist, np.sqrt(d2), rtol=1e-12, atol=1e-12)
     _, _, at_face = closest_among(points, verts, mesh.faces, face[:, None])  # the named face holds the distance
     np.testing.assert_allclose(np.sqrt(at_face), dist, rtol=1e-12, atol=1e-12)

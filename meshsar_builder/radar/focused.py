@@ -20,7 +20,7 @@ magnitude, not its power, is linear in area) and blurred by the same Gaussian.
 Loss: 1 - cosine similarity of the two volumes per sample and view (scale-free: the
 prediction carries no absolute echo scale), mean over samples and views.
 
-Cost: O(facets) for the splat plus 4 FFTs of the padded voxel grid per view, against
+Cost: O(facets) for the splat plus 4 FFTs of the padded voxel grid per view (5 with the diffuse part), against
 O(facets x antennas x frequencies) for a dense echo; the target is focused once per sample.
 """
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import trimesh
 
@@ -93,7 +95,8 @@ def visibility(verts: np.ndarray, faces: np.ndarray, probes: np.ndarray, interse
 
     verts : (n, 3) float mm; faces : (F, 3) int; probes : (P, 3) float mm.
     intersector : anything with trimesh's intersects_any (embree_intersector(verts, faces),
-    or an EmbreeOccluder, the default), to reuse across views. Returns (F,) float in [0, 1] and the number of rays cast. A ray starts at the
+    or an EmbreeOccluder, the default), to reuse across views. Returns (F,) float in [0, 1]
+    and the number of rays cast. A ray starts at the
     centroid lifted by RAY_OFFSET_MM along the normal and counts as blocked if it
     hits any facet (probes lie outside the mesh, so nothing lies beyond them).
     """
@@ -105,8 +108,8 @@ def visibilities(verts: np.ndarray, faces: np.ndarray, probe_sets, intersector=N
     """visibility for several probe sets (P_i, 3) (one per view) in one batch of rays.
 
     Returns a list of (F,) float, one per set, and the number of rays cast in all: one
-    Embree call for every view, as the trainer's masks need (its per-call overhead was a
-    third of their cost, view by view).
+    Embree call and one pass of the facets' geometry for every view, as the trainer's masks
+    need them.
     """
     if intersector is None:
         intersector = EmbreeOccluder(verts, faces)
@@ -122,4 +125,4 @@ def visibilities(verts: np.ndarray, faces: np.ndarray, probe_sets, intersector=N
     seen = np.zeros(facing.shape)
     seen[facet[~blocked], probe[~blocked]] = 1.0
     bounds = np.cumsum([0] + [len(probes) for probes in probe_sets])
-    return [seen[:, a:b].mean(axis=1) for a, b in zip(bounds[:-1], bounds[1:])], len(facet)
+    return [seen[:, a:b].mean(axis=1) for a, b in itertools.pairwise(bounds)], len(facet)
