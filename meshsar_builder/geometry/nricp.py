@@ -474,16 +474,16 @@ def _fit(
     labels: tuple[np.ndarray, np.ndarray] | None,
     landmarks: tuple[sp.csr_matrix, np.ndarray] | None,
     start: np.ndarray | None,
-    steps: range | None = None,
-    frame: tuple[np.ndarray, float] | None = None,
+    steps: range,
+    frame: tuple[np.ndarray, float],
     transforms: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict, np.ndarray]:
-    """nricp's fit at one resolution: the stiffness steps `steps` of the schedule (default all),
-    those before them having brought the template to `transforms` (n, 4, 3) (they count as
-    kept), both in the normalised frame (centre (3,) mm, scale mm) given (default: aligned's own).
+    """nricp's fit at one resolution: the stiffness steps `steps` of the schedule, those before
+    them having brought the template to `transforms` (n, 4, 3) (they count as kept; None: the
+    identity), both in the normalised frame `frame` (centre (3,) mm, scale mm).
     Returns the fit (n, 3) mm, the summary and the final transforms (n, 4, 3)."""
     faces = np.asarray(faces, dtype=np.int64)
-    centre, scale = frame if frame is not None else (aligned.mean(axis=0), float(np.linalg.norm(np.ptp(aligned, axis=0))))
+    centre, scale = frame
     reference = (aligned - centre) / scale
     template_labels, subject_labels = labels if labels is not None else (None, None)
     subject = Subject((np.asarray(subject_verts, dtype=np.float64) - centre) / scale, np.asarray(subject_faces),
@@ -509,7 +509,6 @@ def _fit(
         # from the pre-aligned template, so the spline's guesses (poor far from the landmarks,
         # as at the apex) are not kept for free.
         x.reshape(system.n, 4, 3)[:, 3] += (start - centre) / scale - reference
-    steps = range(len(params.stiffness)) if steps is None else steps
     steps_kept, repeats = steps.start, 0
     # Divergence monitor: the mean distance of the fit's vertices to their closest subject
     # points (measured anyway by the matches) and its flipped faces, every iteration. A fit
