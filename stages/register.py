@@ -29,7 +29,9 @@ version 7: landmarks with a confidence and a robust check, a divergence monitor 
 retry, landmark residual judged, groupwise templates checked against their fits (issue 26);
 version 10: the stiffest step on a coarse template, the landmark term left out of the
 preconditioner (nricp.py; issue 32); version 11: exact closest points from libigl's AABB tree
-(the coarse start's interpolation, the reports' distances, label agreement).
+(the coarse start's interpolation, the reports' distances, label agreement); version 12: a
+structure that forms no region of the surface (landmarks.surface_regions) is neither judged
+by label agreement nor landmarked.
 The rounds' files are made in geometry/groupwise.py; this stage is their plan and one call
 per item.
 """
@@ -108,4 +110,4 @@ def finish(ctx: Context, results: Results) -> None:
 
 # Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
 # adds the first-order term on folded regions).
-STAGE = Stage(name=NAME, version=11, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=12, plan=plan, run=run, finish=finish, again=again)

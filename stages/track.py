@@ -85,4 +85,5 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
                                              for s in np.unique(labels) if s != 0}}
 
 
-STAGE = Stage(name=NAME, version=6, plan=plan, run=run)
+# Version 7: label agreement and landmarks only for structures that form a region (register v12).
+STAGE = Stage(name=NAME, version=7, plan=plan, run=run)

@@ -298,10 +298,38 @@ def test_face_labels_and_label_agreement_match_naive_loops():
     t_labels, s_labels = rng.integers(1, 3, size=60), rng.integers(1, 3, size=len(sphere.vertices))
     _, _, face = trimesh.proximity.closest_point(sphere, fitted)
     agree = np.array([t in s_labels[sphere.faces[f]] for t, f in zip(t_labels, face)])
-    overall, per = label_agreement(fitted, t_labels, sphere.vertices, sphere.faces, s_labels)
+    points_as_faces = np.repeat(np.arange(60)[:, None], 3, axis=1)  # no boundaries: every structure a region
+    overall, per = label_agreement(fitted, points_as_faces, t_labels, sphere.vertices, sphere.faces, s_labels,
+                                   min_vertices=1)
     assert overall == pytest.approx(agree.mean())
     for s in (1, 2):
         assert per[structure_name(s)] == pytest.approx(agree[t_labels == s].mean())
+
+
+def test_a_strip_between_structures_is_not_a_region_judged_or_landmarked():
+    """Real whole-heart CT shows the LV as strips of 16-33 vertices (0-2 inside them) where a
+    contact was cut; such a strip is neither judged by label agreement nor given a centroid."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
+    verts, faces = sphere.vertices, sphere.faces
+    z = verts[:, 2]
+    labels = np.where(z > 0, STRUCTURES["la"], STRUCTURES["ra"]).astype(np.uint8)
+    strip = np.abs(z) < 1.5  # one vertex row each side of the equator
+    labels[strip] = STRUCTURES["lv"]
+    band = (z > 10) & (z < 25) & (verts[:, 0] > 0)  # a patch with an inside: a region
+    labels[band] = STRUCTURES["rv"]
+    from meshsar_builder.geometry.landmarks import surface_regions
+
+    inner = ~np.isin(np.arange(len(verts)), faces[(labels[faces] != labels[faces][:, :1]).any(axis=1)].ravel())
+    assert strip.sum() >= 10 and (inner & strip).sum() == 0
+    assert set(surface_regions(faces, labels, 10)) == {STRUCTURES["la"], STRUCTURES["ra"], STRUCTURES["rv"]}
+    # the subject: the same surface with the strip's vertices relabelled, so the strip would score 0
+    subject_labels = np.where(strip, STRUCTURES["ra"], labels)
+    overall, per = label_agreement(verts, faces, labels, verts, faces, subject_labels)
+    assert set(per) == {"la", "ra", "rv"} and min(per.values()) == 1.0
+    assert overall < 1.0  # the strip's vertices still count in the overall figure
+    marks = label_landmarks(verts, faces, labels)
+    assert "centroid:lv" not in marks.keys and "centroid:rv" in marks.keys
+    assert not any("lv" in key for key in marks.keys)
 
 
 def test_accept_names_the_structures_below_the_label_agreement():

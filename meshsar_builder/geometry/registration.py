@@ -370,7 +370,8 @@ def _register_once(
         **start_report,
     }
     if labels is not None:
-        overall, per_structure = label_agreement(fitted, labels[0], subject_verts, subject_faces, labels[1])
+        overall, per_structure = label_agreement(fitted, template_faces, labels[0], subject_verts, subject_faces,
+                                                      labels[1])
         report["label_agreement"] = overall
         report["label_agreement_by_structure"] = per_structure
         report["landmarks"] = list(marks[0].keys)
