@@ -78,4 +78,5 @@ def run(ctx: Context, item: Item) -> dict:
     }
 
 
-STAGE = Stage(name=NAME, version=5, plan=plan, run=run)
+# Version 6: a voxel size from pixdim where the sform disagrees (label_maps.voxel_affine: real ACDC files).
+STAGE = Stage(name=NAME, version=6, plan=plan, run=run)

@@ -52,6 +52,32 @@ def test_mmwhs_codes_including_421_map_to_canonical(tmp_path):
         assert labels[tuple(j)] == expect, c
 
 
+def test_pixdim_gives_the_spacing_where_the_sform_disagrees(tmp_path):
+    """Real ACDC files: an sform of unit voxels, diag(-1, -1, 1), beside pixdim 1.37 x 1.37 x 10 mm.
+    Read as ITK reads them: pixdim's spacing, the sform's orientation and origin, with a warning."""
+    import nibabel as nib
+    import warnings
+
+    data = np.zeros((6, 5, 4), np.uint8)
+    data[2, 3, 1] = 3
+    img = nib.Nifti1Image(data, np.diag([-1.0, -1.0, 1.0, 1.0]))
+    img.header.set_zooms((1.5, 1.5, 10.0))
+    path = tmp_path / "patient001_frame01_gt.nii.gz"
+    nib.save(img, str(path))
+    assert np.allclose(nib.load(str(path)).affine[:3, :3], np.diag([-1.0, -1.0, 1.0]))  # the file is as ACDC's
+    with pytest.warns(InputWarning, match=r"patient001_frame01_gt.nii.gz: the affine's voxel size \[1.0, 1.0, 1.0\] mm "
+                                          r"disagrees with the header's pixdim \[1.5, 1.5, 10.0\] mm"):
+        labels, ras = read_label_map(path, ACDC_TABLE)
+    np.testing.assert_allclose(np.abs(np.diag(ras)[:3]), [1.5, 1.5, 10.0])
+    (i, j, k), = np.argwhere(labels == STRUCTURES["lv"])
+    np.testing.assert_allclose(ras @ [i, j, k, 1.0], [-3.0, -4.5, 10.0, 1.0])  # voxel (2, 3, 1) in the file's world
+    consistent = save_nifti(tmp_path / "b.nii.gz", data, np.diag([-1.5, -1.5, 10.0, 1.0]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        _, same = read_label_map(consistent, ACDC_TABLE)
+    np.testing.assert_allclose(same, ras)
+
+
 def test_table_is_fixed_not_sorted_order(tmp_path):
     """A file holding only 500 and 850 still maps 500 to lv and 850 to pa."""
     data = np.zeros((4, 4, 4), np.int16)

@@ -115,14 +115,38 @@ def _load_header(path: Path, t: int | None = None) -> tuple[nib.Nifti1Image, tup
     return img, shape[:3]
 
 
+def voxel_affine(path: Path, img: nib.Nifti1Image) -> np.ndarray:
+    """The voxel -> world affine (4, 4) of a NIfTI header, its voxel size from pixdim.
+
+    Where the sform/qform's voxel size disagrees with pixdim (by more than 0.1 %), pixdim
+    gives the spacing and the affine the orientation and origin, as ITK reads every NIfTI
+    file, with a warning naming the file and both sizes. Real ACDC files carry an sform of
+    unit voxels (diag(-1, -1, 1)) beside pixdim 1.37 x 1.37 x 10 mm: read by the sform, a
+    heart is a 7-16 mm high disc.
+    """
+    affine = np.asarray(img.affine, dtype=np.float64)
+    pixdim = np.asarray(img.header.get_zooms()[:3], dtype=np.float64)
+    columns = np.linalg.norm(affine[:3, :3], axis=0)
+    if np.all(pixdim > 0) and np.all(np.isfinite(pixdim)) and np.any(np.abs(columns / pixdim - 1) > 1e-3):
+        warnings.warn(
+            f"{path}: the affine's voxel size {np.round(columns, 4).tolist()} mm disagrees with the header's pixdim "
+            f"{np.round(pixdim, 4).tolist()} mm; pixdim gives the spacing, the affine the orientation and origin "
+            f"(as ITK reads it)", InputWarning, stacklevel=3)
+        affine = affine.copy()
+        affine[:3, :3] = affine[:3, :3] / columns * pixdim
+    return affine
+
+
 def _load_data(path: Path, img: nib.Nifti1Image, t: int | None = None) -> tuple[nib.Nifti1Image, np.ndarray]:
-    """The image (its frame `t` when 4-D, same affine) reoriented to closest canonical RAS and
-    its voxel data; InputError when corrupt."""
+    """The image (its frame `t` when 4-D, the affine of voxel_affine) reoriented to closest
+    canonical RAS and its voxel data; InputError when corrupt."""
+    affine = voxel_affine(path, img)
     try:
         if path.name.endswith(".gz"):
             # Decompress the whole stream: gzip checks its CRC and length, so a truncated file
             # fails here even when the bytes the image needs happen to come before the cut.
             img = type(img).from_bytes(gzip.decompress(path.read_bytes()))
+        img = type(img)(img.dataobj, affine, img.header)
         if len(img.shape) == 4:
             # One T index: slicing the last axis keeps the affine (and reads only that frame).
             img = img.slicer[:, :, :, t if t is not None else 0]
