@@ -31,7 +31,9 @@ version 10: the stiffest step on a coarse template, the landmark term left out o
 preconditioner (nricp.py; issue 32); version 11: exact closest points from libigl's AABB tree
 (the coarse start's interpolation, the reports' distances, label agreement); version 12: a
 structure that forms no region of the surface (landmarks.surface_regions) is neither judged
-by label agreement nor landmarked.
+by label agreement nor landmarked; version 13: a flipped face is one turned over against its
+neighbourhood, not a smooth turn past 90 degrees (nricp.flipped_faces), and a retry that
+the fold guard stopped too is kept where it lies closer to the subject.
 The rounds' files are made in geometry/groupwise.py; this stage is their plan and one call
 per item.
 """
@@ -110,4 +112,4 @@ def finish(ctx: Context, results: Results) -> None:
 
 # Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
 # adds the first-order term on folded regions).
-STAGE = Stage(name=NAME, version=12, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=13, plan=plan, run=run, finish=finish, again=again)

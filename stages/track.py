@@ -85,5 +85,6 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
                                              for s in np.unique(labels) if s != 0}}
 
 
-# Version 7: label agreement and landmarks only for structures that form a region (register v12).
-STAGE = Stage(name=NAME, version=7, plan=plan, run=run)
+# Version 7: label agreement and landmarks only for structures that form a region (register v12);
+# version 8: flipped faces judged against their neighbourhood (register v13).
+STAGE = Stage(name=NAME, version=8, plan=plan, run=run)

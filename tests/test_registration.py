@@ -118,13 +118,28 @@ def test_accept_names_each_broken_threshold(change, reason):
         accept({**report, **change}, PARAMS)
 
 
-def test_flipped_faces_detects_a_reversed_triangle_only():
-    before = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]])
-    faces = np.array([[0, 1, 2], [1, 3, 2]])
-    after = before.copy()
-    after[2] = (0.0, -1.0, 0.5)  # vertex 2 crosses edge 0-1: face 0 turns over
-    after[3] = (1.0, 1.0, 0.5)
-    np.testing.assert_array_equal(flipped_faces(before, after, faces), [True, False])
+def test_flipped_faces_are_folds_not_turns():
+    """A face turned past 90 degrees along with its neighbourhood is no fold (a real dilated RV's
+    fit turned 71 faces so, on the subject's surface); one turned against it is, and so is every
+    turned face of a mesh turned inside out."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
+    verts, faces = sphere.vertices, sphere.faces
+    turned = verts @ Rotation.from_euler("x", 150, degrees=True).as_matrix().T
+    assert not flipped_faces(verts, turned, faces).any()
+    # a twist about z, 150 degrees from bottom to top: smooth, one to one, and the side faces turn past 90
+    angle = np.radians(150.0) * (verts[:, 2] + 30.0) / 60.0
+    twisted = np.c_[verts[:, 0] * np.cos(angle) - verts[:, 1] * np.sin(angle),
+                    verts[:, 0] * np.sin(angle) + verts[:, 1] * np.cos(angle), verts[:, 2]]
+    assert (np.einsum("ij,ij->i", sphere.face_normals, trimesh.Trimesh(twisted, faces).face_normals) < 0).sum() > 50
+    assert not flipped_faces(verts, twisted, faces).any()
+    dragged = verts.copy()
+    top = int(np.argmax(verts[:, 2]))
+    dragged[top, 0] += 9.0  # past its neighbours (edges 3.8 mm): a face on the far side turns over
+    folded = flipped_faces(verts, dragged, faces)
+    turned_alone = np.einsum("ij,ij->i", sphere.face_normals, trimesh.Trimesh(dragged, faces).face_normals) < 0
+    assert folded.any() and np.array_equal(folded, turned_alone)
+    assert set(np.flatnonzero(folded)) <= set(np.flatnonzero((faces == top).any(axis=1)))
+    assert flipped_faces(verts, verts * [-1.0, 1.0, 1.0], faces).sum() > len(faces) // 2  # inside out
 
 
 def test_choose_template_takes_the_median_volume_deterministically():
