@@ -323,15 +323,18 @@ def fixed_convolution(volumes, transfers, shape) -> torch.Tensor:
     return _FixedConvolution.apply(tuple(shape), tuple(transfers), *volumes)
 
 
-def focused_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup: FocusedSetup) -> torch.Tensor:
+def focused_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup: FocusedSetup,
+                 masks: list[torch.Tensor] | None = None) -> torch.Tensor:
     """Mean over samples and views of 1 - cos(predicted, target) of the blurred power volumes.
 
-    verts (B, n, 3) mm; faces (m, 3) long; targets (B, V, S, H, W) from setup.target.
+    verts (B, n, 3) mm; faces (m, 3) long; targets (B, V, S, H, W) from setup.target; masks:
+    occlusion_masks of verts for setup.probes (V x (B, m)), or None to trace them here.
     """
     from meshsar_builder.radar.differentiable import occlusion_masks
 
     faces = torch.as_tensor(faces, dtype=torch.long, device=verts.device)
-    masks = occlusion_masks(verts, faces, setup.probes[: targets.shape[1]])  # V x (B, m), one scene a mesh
+    if masks is None:
+        masks = occlusion_masks(verts, faces, setup.probes[: targets.shape[1]])  # V x (B, m), one scene a mesh
     terms = []
     for v in range(targets.shape[1]):
         pred = setup.predicted(verts, faces, v, masks[v]).flatten(1)  # (B, N)

@@ -245,16 +245,18 @@ def smooth_gradient(verts: torch.Tensor, edges: torch.Tensor, iterations: int) -
     return _SmoothGradient.apply(verts, edges, iterations)
 
 
-def focused_radar_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup) -> torch.Tensor:
+def focused_radar_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup,
+                       masks: list[torch.Tensor] | None = None) -> torch.Tensor:
     """The focused radar loss (radar/focused.py focused_loss): 1 - cosine of blurred power volumes.
 
     verts (B, n, 3) mm; targets (B, V, S, H, W) float, setup.target of each sample's
     loss-grid echo (echo_clean, or the recorded echo with its noise_sigma); setup a
-    FocusedSetup for the views in use. 0 on a perfect match, up to 1 (2 for anti-correlated).
+    FocusedSetup for the views in use; masks: the views' occlusion masks V x (B, m) when
+    already traced (None: traced here). 0 on a perfect match, up to 1 (2 for anti-correlated).
     """
     from meshsar_builder.radar.focused import focused_loss
 
-    return focused_loss(verts, faces, targets, setup)
+    return focused_loss(verts, faces, targets, setup, masks)
 
 
 def balanced(radar: torch.Tensor, geometric: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:

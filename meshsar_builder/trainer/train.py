@@ -30,6 +30,7 @@ import io
 import math
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -190,6 +191,9 @@ def sample_generators(seed: int, epoch: int, sample_ids: list[str]) -> list[torc
             for sid in sample_ids]
 
 
+_MASKS = ThreadPoolExecutor(1)  # batch_losses' radar masks, beside the geometric terms
+
+
 def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mesh, batch: dict,
                  geometry: DatasetGeometry, config: TrainConfig, radar_weight: float,
                  generators: list[torch.Generator]) -> dict[str, torch.Tensor]:
@@ -202,6 +206,15 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
     """
     unit = geometry.fov_mm / 2
     device = meshes[0][1].device
+    masks = None
+    if radar_weight > 0 and config.radar_loss.mode == "focused":
+        # The radar term's Embree masks need only the predicted vertices: traced in a thread
+        # while the geometric terms run (Embree releases the GIL; the step's CPU is not full).
+        from meshsar_builder.radar.differentiable import occlusion_masks
+
+        rc = config.radar_loss
+        probes = geometry.focused_setup(focused_params(rc)).probes
+        masks = _MASKS.submit(occlusion_masks, meshes[rc.stage][1].detach(), model.topology(rc.stage)["faces"], probes)
     targets = [L.sample_surface(v.double(), f, config.loss.chamfer_points, g).float().to(device) / unit
                for v, f, g in zip(batch["verts"], batch["faces"], generators)]  # B x (P, 3)
     terms = {name: torch.zeros((), device=device) for name in ("radar", "radar_l1")}
@@ -222,7 +235,8 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
         topo = model.topology(rc.stage)
         verts = meshes[rc.stage][1]
         smoothed = L.smooth_gradient(verts.float(), topo["edges"], rc.smooth_iterations)
-        relative = L.focused_radar_loss(smoothed, topo["faces"], targets, geometry.focused_setup(params))
+        relative = L.focused_radar_loss(smoothed, topo["faces"], targets, geometry.focused_setup(params),
+                                        masks.result())
         terms["radar_l1"] = relative.detach()
         if rc.balance == "gradient" and torch.is_grad_enabled() and verts.requires_grad:
             terms["radar"] = radar_weight * L.balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
