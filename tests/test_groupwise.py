@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from meshsar_builder.geometry.groupwise import bbox_centred, final_round, mean_template, movement, taubin
 from meshsar_builder.geometry.intersections import self_intersecting_faces
-from meshsar_builder.geometry.nricp import flipped_faces
+from meshsar_builder.geometry.measures import flipped_faces
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.ssm import population_pose, rigid_fit
 from meshsar_builder.pipeline.errors import MeshError

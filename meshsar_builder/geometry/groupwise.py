@@ -30,9 +30,9 @@ import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from meshsar_builder.geometry.intersections import self_intersecting_faces
+from meshsar_builder.geometry.measures import flipped_faces
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.meshing import transfer_labels
-from meshsar_builder.geometry.nricp import flipped_faces
 from meshsar_builder.geometry.registration import accept, choose_template, register
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import simplify

@@ -26,8 +26,9 @@ from meshsar_builder.geometry.landmarks import (
     label_landmarks,
     landmark_warp,
 )
+from meshsar_builder.geometry.measures import flipped_faces
 from meshsar_builder.geometry.meshing import point_to_surface
-from meshsar_builder.geometry.nricp import Subject, Surface, flipped_faces, nricp
+from meshsar_builder.geometry.nricp import Subject, Surface, nricp
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import require_valid
 from meshsar_builder.pipeline.errors import MeshError
@@ -217,8 +218,8 @@ def register(
       mean_mm, p95_mm, max_mm: two-sided surface distance between fit and subject from
         params.distance_samples area-weighted samples per side; mean_mm is the mean of the
         two directed means, p95_mm and max_mm are over the pooled distances of both sides;
-      flipped_faces: faces whose normal after the non-rigid fit points against their normal
-        in the pre-aligned template (turned by more than 90 degrees; see flipped_faces);
+      flipped_faces: faces of the fit turned over against the pre-aligned template's (turned
+        by more than 90 degrees against their neighbourhood; see measures.flipped_faces);
       self_intersections: faces of the fit intersecting a non-adjacent face;
       label_agreement, label_agreement_by_structure (only when both label arrays are given):
         fraction of template vertices that land on their own structure after the fit (see

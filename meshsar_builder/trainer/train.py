@@ -206,15 +206,12 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
     """
     unit = geometry.fov_mm / 2
     device = meshes[0][1].device
-    masks = None
-    if radar_weight > 0 and config.radar_loss.mode == "focused":
-        # The radar term's Embree masks need only the predicted vertices: traced in a thread
-        # while the geometric terms run (Embree releases the GIL; the step's CPU is not full).
+    rc, masks = config.radar_loss, None
+    if radar_weight > 0 and rc.mode == "focused":  # Embree masks traced in a thread beside the geometric terms
         from meshsar_builder.radar.differentiable import occlusion_masks
 
-        rc = config.radar_loss
-        probes = geometry.focused_setup(focused_params(rc)).probes
-        masks = _MASKS.submit(occlusion_masks, meshes[rc.stage][1].detach(), model.topology(rc.stage)["faces"], probes)
+        setup = geometry.focused_setup(focused_params(rc))
+        masks = _MASKS.submit(occlusion_masks, meshes[rc.stage][1].detach(), model.topology(rc.stage)["faces"], setup.probes)
     targets = [L.sample_surface(v.double(), f, config.loss.chamfer_points, g).float().to(device) / unit
                for v, f, g in zip(batch["verts"], batch["faces"], generators)]  # B x (P, 3)
     terms = {name: torch.zeros((), device=device) for name in ("radar", "radar_l1")}
@@ -228,22 +225,18 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
             terms[f"{name}_s{k}"] = weight * value
     for name in LOSS_TERMS:
         terms[name] = sum(terms[f"{name}_s{k}"] for k in range(len(meshes)))
-    if radar_weight > 0 and config.radar_loss.mode == "focused":
-        rc = config.radar_loss
-        params = focused_params(rc)
-        targets = geometry.focused_targets(batch, params, rc.target).to(device)
+    if masks is not None:
+        targets = geometry.focused_targets(batch, focused_params(rc), rc.target).to(device)
         topo = model.topology(rc.stage)
         verts = meshes[rc.stage][1]
         smoothed = L.smooth_gradient(verts.float(), topo["edges"], rc.smooth_iterations)
-        relative = L.focused_radar_loss(smoothed, topo["faces"], targets, geometry.focused_setup(params),
-                                        masks.result())
+        relative = L.focused_radar_loss(smoothed, topo["faces"], targets, setup, masks.result())
         terms["radar_l1"] = relative.detach()
         if rc.balance == "gradient" and torch.is_grad_enabled() and verts.requires_grad:
             terms["radar"] = radar_weight * L.balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
         else:
             terms["radar"] = radar_weight * relative
     elif radar_weight > 0:
-        rc = config.radar_loss
         echo = batch["echo"][:, geometry.view_index]
         echo = echo.reshape(*echo.shape[:2], -1, echo.shape[-1])  # (B, V, M, Ef), rows as positions_mm
         positions = geometry.positions
