@@ -211,7 +211,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
         from meshsar_builder.radar.differentiable import occlusion_masks
 
         setup = geometry.focused_setup(focused_params(rc))
-        masks = _MASKS.submit(occlusion_masks, meshes[rc.stage][1].detach(), model.topology(rc.stage)["faces"], setup.probes)
+        masks = _MASKS.submit(occlusion_masks, meshes[rc.stage][1].detach().float(), model.topology(rc.stage)["faces"], setup.probes)
     targets = [L.sample_surface(v.double(), f, config.loss.chamfer_points, g).float().to(device) / unit
                for v, f, g in zip(batch["verts"], batch["faces"], generators)]  # B x (P, 3)
     terms = {name: torch.zeros((), device=device) for name in ("radar", "radar_l1")}
