@@ -32,7 +32,7 @@ preconditioner (nricp.py; issue 32); version 11: exact closest points from libig
 (the coarse start's interpolation, the reports' distances, label agreement); version 12: a
 structure that forms no region of the surface (landmarks.surface_regions) is neither judged
 by label agreement nor landmarked; version 13: a flipped face is one turned over against its
-neighbourhood, not a smooth turn past 90 degrees (nricp.flipped_faces), and a retry that
+neighbourhood, not a smooth turn past 90 degrees (measures.flipped_faces), and a retry that
 the fold guard stopped too is kept where it lies closer to the subject.
 The rounds' files are made in geometry/groupwise.py; this stage is their plan and one call
 per item.

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import gzip
 import json
+import warnings
 from pathlib import Path
 
+import nibabel as nib
 import numpy as np
 import pytest
 
@@ -55,9 +57,6 @@ def test_mmwhs_codes_including_421_map_to_canonical(tmp_path):
 def test_pixdim_gives_the_spacing_where_the_sform_disagrees(tmp_path):
     """Real ACDC files: an sform of unit voxels, diag(-1, -1, 1), beside pixdim 1.37 x 1.37 x 10 mm.
     Read as ITK reads them: pixdim's spacing, the sform's orientation and origin, with a warning."""
-    import nibabel as nib
-    import warnings
-
     data = np.zeros((6, 5, 4), np.uint8)
     data[2, 3, 1] = 3
     img = nib.Nifti1Image(data, np.diag([-1.0, -1.0, 1.0, 1.0]))
