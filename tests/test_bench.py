@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from meshsar_builder.bench import trainer as BT
-from meshsar_builder.bench.suite import bench_recipe
 from meshsar_builder.cli import main
 from meshsar_builder.pipeline.io import read_json
 

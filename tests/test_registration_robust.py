@@ -182,3 +182,24 @@ def test_a_fit_the_fold_guard_stopped_early_is_retried_stiffer_and_the_better_ke
     monkeypatch.setattr(registration, "nricp", worse_retry)
     _, report = register(verts, faces, verts * 1.02, faces, PARAMS, np.random.default_rng(0), labels, labels)
     assert report["nricp"]["steps_kept"] == 2 and report["nricp"]["retry_attempt"]["steps_kept"] == 0
+    # Both stopped early by the fold guard: the one closer to the subject is kept (a real ACDC
+    # ventricle: first attempt 0.74 mm, its retry 0.25 mm).
+    for retry_closer in (True, False):
+        calls.clear()
+
+        def both_stopped(aligned, faces_, subject_verts, subject_faces, params, labels_=None, landmarks=None,
+                         start=None):
+            calls.append(1)
+            off = (len(calls) == 1) == retry_closer  # this attempt ends 3 mm out
+            fit = aligned + 3.0 * (aligned - aligned.mean(axis=0)) / np.linalg.norm(aligned - aligned.mean(axis=0),
+                                                                                     axis=1, keepdims=True) * off
+            return fit, {"steps_kept": 3 if len(calls) == 1 else 4, "steps": len(params.stiffness), "fold_repeats": 7,
+                         "stiffened_vertices": 9}
+
+        monkeypatch.setattr(registration, "nricp", both_stopped)
+        _, report = register(verts, faces, verts * 1.02, faces, PARAMS, np.random.default_rng(0), labels, labels)
+        assert report["mean_mm"] < 1.0
+        if retry_closer:
+            assert report["nricp"]["steps_kept"] == 4 and report["nricp"]["first_attempt"]["steps_kept"] == 3
+        else:
+            assert report["nricp"]["steps_kept"] == 3 and report["nricp"]["retry_attempt"]["steps_kept"] == 4

@@ -206,11 +206,11 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
     """
     unit = geometry.fov_mm / 2
     device = meshes[0][1].device
-    rc, masks = config.radar_loss, None
+    rc, params, masks = config.radar_loss, focused_params(config.radar_loss), None
     if radar_weight > 0 and rc.mode == "focused":  # Embree masks traced in a thread beside the geometric terms
         from meshsar_builder.radar.differentiable import occlusion_masks
 
-        setup = geometry.focused_setup(focused_params(rc))
+        setup = geometry.focused_setup(params)
         masks = _MASKS.submit(occlusion_masks, meshes[rc.stage][1].detach().float(), model.topology(rc.stage)["faces"], setup.probes)
     targets = [L.sample_surface(v.double(), f, config.loss.chamfer_points, g).float().to(device) / unit
                for v, f, g in zip(batch["verts"], batch["faces"], generators)]  # B x (P, 3)
@@ -226,7 +226,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
     for name in LOSS_TERMS:
         terms[name] = sum(terms[f"{name}_s{k}"] for k in range(len(meshes)))
     if masks is not None:
-        targets = geometry.focused_targets(batch, focused_params(rc), rc.target).to(device)
+        targets = geometry.focused_targets(batch, params, rc.target).to(device)
         topo = model.topology(rc.stage)
         verts = meshes[rc.stage][1]
         smoothed = L.smooth_gradient(verts.float(), topo["edges"], rc.smooth_iterations)
