@@ -118,7 +118,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     refuse_if_locked(args.data)
     for k in modes:
         for noise in noises:
-            params = FitParams(modes=k, iterations=args.iterations, rotation_lr=args.rotation_lr)
+            params = FitParams(modes=k, iterations=args.iterations, rotation_lr=args.rotation_lr,
+                               **({} if args.corrections is None else {"corrections": args.corrections}))
             if args.held_out:
                 fit_held_out(args.data, params, snr_db=noise, samples=args.samples, limit=args.limit)
             else:
@@ -256,6 +257,10 @@ def parser() -> argparse.ArgumentParser:
     fi.add_argument("--iterations", type=int, default=150, help="Adam steps per sample (default 150)")
     fi.add_argument("--rotation-lr", type=float, default=0.0,
                     help="Adam step of the rotation (rad); 0 (default) keeps the model's orientation")
+    fi.add_argument("--corrections", type=int,
+                    help="rounds of model-bias correction after the first fit: the production echo of the fit's "
+                         "mesh re-simulated, the model's bias taken off the target (default 2, FitParams; 0: the "
+                         "image-domain model alone)")
     fi.add_argument("--held-out", action="store_true",
                     help="fit each registered subject with a shape model of the others (leave-subject-out) "
                          "instead of the split's shape-model test samples")

@@ -1,8 +1,9 @@
 """`meshsar bench inference`: the cost of physics at inference (issue 30 item 3).
 
 On N shape-model test samples of a build (format 2, with its shape model), each timed alone:
-- fit: `meshsar fit`'s shape-model fit to the recorded echo (trainer/fit.py fit_shape at the
-  default FitParams), from the recorded echo's focused targets to the fitted mesh;
+- fit: `meshsar fit`'s shape-model fit to the recorded echo (trainer/fit.py fit_corrected at
+  the default FitParams, its model-bias corrections included), from the recorded echo's
+  focused targets to the fitted mesh;
 - refine: `--refine` on a prediction-like mesh (the truth re-meshed onto the trainer's output
   template and scaled by REFINE_SCALE about its centre, so the refinement has somewhere to
   go), with the default config's [refine], from the recorded echo to the refined mesh.
@@ -37,7 +38,7 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 3, split: str = "s
     from meshsar_builder.dataset.readers import MeshSARDataset
     from meshsar_builder.trainer import losses as L
     from meshsar_builder.trainer.config import load_config, split_seed
-    from meshsar_builder.trainer.fit import FitParams, fit_shape, shape_model_tensors
+    from meshsar_builder.trainer.fit import FitParams, fit_corrected, shape_model_tensors, specular_simulator
     from meshsar_builder.trainer.model import icosphere_levels
     from meshsar_builder.trainer.refine import sample_refiner
     from meshsar_builder.trainer.train import DatasetGeometry
@@ -53,6 +54,7 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 3, split: str = "s
     model = shape_model_tensors(data / "ssm" / "model.npz")
     params = params or FitParams(modes=min(FitParams.modes, model["modes"].shape[0]))  # a small model: all it has
     setup = DatasetGeometry.from_index(dataset.index, ()).focused_setup(params.focused)
+    simulate = specular_simulator(data, model["faces"].numpy()) if params.corrections else None
     refine = sample_refiner(dataset.index, config)
     levels, level_faces, _ = icosphere_levels(config.model.template_level)
     template, tfaces = levels[-1], level_faces[-1]
@@ -68,7 +70,7 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 3, split: str = "s
         began = time.perf_counter()
         # echo_noisy: the build's recording on the loss grid, as `meshsar fit` reads it
         targets = torch.from_numpy(setup.target(sample["echo_noisy"].numpy(), sample["noise_sigma"].numpy()))
-        fitted = fit_shape(model, targets, setup, params)
+        fitted = fit_corrected(model, targets, setup, params, simulate)
         fit_s = time.perf_counter() - began
         truth = sample["verts"].double().numpy()
         base = remesh_onto_template(truth, sample["faces"].numpy(), template)
@@ -91,7 +93,8 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 3, split: str = "s
         return {"target": f"<= {limit}", "measured": median, "worst": max(values), "met": median <= limit}
 
     result = {"data": str(data), "split": split, "config": config.name, "threads": torch.get_num_threads(),
-              "fit": {"modes": params.modes, "iterations": params.iterations},
+              "fit": {"modes": params.modes, "iterations": params.iterations, "corrections": params.corrections,
+                      "correction_iterations": params.correction_iterations},
               "refine": {"steps": config.refine.steps, "smooth_iterations": config.refine.smooth_iterations,
                          "template_vertices": len(template), "start_scale": REFINE_SCALE},
               "targets": {"fit_seconds_per_sample": target("fit_seconds", FIT_TARGET_S),
