@@ -111,6 +111,8 @@ def test_corrected_for_the_models_bias_the_fit_recovers_the_truth_from_the_produ
     short = FitParams(modes=2, iterations=5, corrections=0)
     np.testing.assert_array_equal(F.fit_corrected(model, targets, setup, short)["verts"],
                                   fit_shape(model, targets, setup, short)["verts"])
+    with pytest.raises(InputError, match="corrections need a simulator"):
+        F.fit_corrected(model, targets, setup, FitParams(modes=2, corrections=1))
 
 
 @pytest.mark.parametrize("name, shift_mm, scale, bound", [("shift toward a view", (0.0, 0.0, 2.0), 1.0, 0.8),

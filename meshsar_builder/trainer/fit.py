@@ -168,6 +168,8 @@ def fit_corrected(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, 
     Returns fit_shape's result of the last round with
     `rounds`: per correction round, the mean vertex move (mm) and the loss at its end, and
     `targets` (V, S, H, W), the corrected targets the last round fitted."""
+    if params.corrections and simulate is None:
+        raise InputError("fit: model-bias corrections need a simulator of the production echo (simulate)")
     result = fit_shape(model, targets, setup, params)
     rounds, corrected = [], targets
     for _ in range(params.corrections):
