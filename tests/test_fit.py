@@ -342,3 +342,14 @@ def test_the_inference_bench_times_fits_and_refinements_of_shape_model_samples(f
         target = result["targets"][key]
         assert target["measured"] == pytest.approx(np.median([r[column] for r in rows]))
         assert target["met"] == (target["measured"] <= float(target["target"].split()[-1]))
+
+
+def test_the_cli_passes_corrections_to_the_fit_and_keeps_the_default_without_the_flag(tmp_path, monkeypatch):
+    from meshsar_builder.cli import main
+
+    seen = []
+    monkeypatch.setattr(F, "fit_split", lambda data, split, params, **kw: seen.append(params))
+    assert main(["fit", str(tmp_path), "--corrections", "0"]) == 0
+    assert main(["fit", str(tmp_path)]) == 0
+    assert [p.corrections for p in seen] == [0, FitParams.corrections]
+    assert (tmp_path / "fits" / "seed-0.md").exists()

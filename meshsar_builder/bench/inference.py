@@ -54,7 +54,7 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 3, split: str = "s
     model = shape_model_tensors(data / "ssm" / "model.npz")
     params = params or FitParams(modes=min(FitParams.modes, model["modes"].shape[0]))  # a small model: all it has
     setup = DatasetGeometry.from_index(dataset.index, ()).focused_setup(params.focused)
-    simulate = specular_simulator(data, model["faces"].numpy()) if params.corrections else None
+    simulate = specular_simulator(data, model["faces"].numpy())
     refine = sample_refiner(dataset.index, config)
     levels, level_faces, _ = icosphere_levels(config.model.template_level)
     template, tfaces = levels[-1], level_faces[-1]

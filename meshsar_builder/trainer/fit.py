@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import os
 import time
 from pathlib import Path
@@ -185,13 +186,17 @@ def fit_corrected(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, 
 def specular_simulator(data: Path, faces: np.ndarray):
     """verts (n, 3) -> the noise-free specular echo (V, Lx, Ly, Lf) on the loss grid of a mesh with
     these faces, simulated as the build's radar stage simulates a sample (its recipe's radar
-    parameters, diffuse part off: its scatterers are the sample's own, which no scanner gives)."""
+    parameters, diffuse part off: its scatterers are the sample's own, which no scanner gives).
+    The recipe is read at the first call: a fit without corrections never makes one."""
     from meshsar_builder.pipeline import recipe as recipe_mod
     from meshsar_builder.radar.render import render_sample
 
-    recipe = recipe_mod.load(data / "recipe.toml")
-    radar = dataclasses.replace(recipe.radar, diffuse=False)
-    return lambda verts: render_sample(verts, faces, radar, recipe.images, np.random.default_rng(0))["echo_clean"]
+    @functools.cache
+    def setting():
+        recipe = recipe_mod.load(data / "recipe.toml")
+        return dataclasses.replace(recipe.radar, diffuse=False), recipe.images
+
+    return lambda verts: render_sample(verts, faces, *setting(), np.random.default_rng(0))["echo_clean"]
 
 
 def recorded_loss_echo_at(sample: dict, index: dict, scale: float) -> np.ndarray:
@@ -247,8 +252,8 @@ def fit_split(data: str | os.PathLike, split: str = "seed-0", params: FitParams 
     record = {"data": str(data), "split": split, "snr_db": label, "params": _plain(params)}
     items = [(sid, i, lambda i=i: (dataset[i], model, params)) for i, sid in chosen]
     title = f"{data.name} ({split}, test, shape-model samples; {params.modes} modes, noise {label})"
-    simulate = specular_simulator(data, model["faces"].numpy()) if params.corrections else None
-    return _fit_items(out, record, items, index, scale, setup, simulate, samples, network, title, progress)
+    return _fit_items(out, record, items, index, scale, setup, specular_simulator(data, model["faces"].numpy()),
+                      samples, network, title, progress)
 
 
 def fit_held_out(data: str | os.PathLike, params: FitParams = FitParams(), snr_db: float | None | str = "build",
@@ -304,8 +309,8 @@ def fit_held_out(data: str | os.PathLike, params: FitParams = FitParams(), snr_d
     record = {"data": str(data), "split": "held-out", "snr_db": label, "params": _plain(params)}
     items = [(sid, n, lambda sid=sid: subject(sid)) for n, sid in enumerate(subjects[:limit])]
     title = f"{data.name} (held-out subjects, leave-one-out models; {params.modes} modes, noise {label})"
-    simulate = specular_simulator(data, faces) if params.corrections else None
-    return _fit_items(out, record, items, index, scale, setup, simulate, samples, {}, title, progress)
+    return _fit_items(out, record, items, index, scale, setup, specular_simulator(data, faces), samples, {}, title,
+                      progress)
 
 
 def _fit_items(out: Path, record: dict, items: list, index: dict, scale: float, setup, simulate, samples: int,
