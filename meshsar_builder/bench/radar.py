@@ -88,7 +88,8 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
                                           diffuse=(*lit, RD.lambert(radar))))
         # and its power on the stored echo grid, summed on its own (render_sample's diffuse_power)
         on_grid = RP.sub_aperture(radar, view, radar.echo_decimation)
-        t_power, _ = _best(lambda: RE.point_echo(*lit, on_grid, freqs, RD.lambert(radar)))
+        kept = freqs[RP.grid_indices(radar, radar.echo_decimation)[2]]
+        t_power, _ = _best(lambda: RE.point_echo(*lit, on_grid, kept, RD.lambert(radar)))
         t_diffuse = max(t_both - t_echo, 0.0) + t_power
     signal = signal.reshape(*radar.aperture, radar.n_samples)
     t_img, volume = _best(lambda: view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
@@ -261,9 +262,9 @@ def factorised_profile(verts, faces, radar, view: str) -> dict:
     direct, clusters = RF.factorised_clusters(tri.mean(axis=1), tri, grid, float(RS._wavenumbers(freqs).max()))
     series, timed = RS._series_echo, {}
 
-    def timing(*args):
+    def timing(*args, **kwargs):
         start = time.perf_counter()
-        out = series(*args)
+        out = series(*args, **kwargs)
         timed["seconds"] = min(timed.get("seconds", math.inf), time.perf_counter() - start)
         timed["pairs"], timed["antennas"] = int((args[4] - args[3]).sum()), len(args[2])
         return out

@@ -126,7 +126,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         if lit is not None:  # the diffuse part's own power, where the shards keep the echo
             n_scatterers = len(lit[2])
             on_grid = sub_aperture(radar, view, radar.echo_decimation)
-            diffuse_echo = view_point_echo(*lit, on_grid, freqs, lambert(radar))[:, echo_indices[2]]
+            diffuse_echo = view_point_echo(*lit, on_grid, freqs[echo_indices[2]], lambert(radar))
             diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
         signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))

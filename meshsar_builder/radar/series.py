@@ -127,12 +127,15 @@ def _echo_direct(points, normals, weights, offsets, positions, freqs, radar):
 #
 # The kernels are compiled by numba with fastmath off (no reassociation, no FMA
 # contraction) and loops in a fixed order; every antenna is summed on its own, in one
-# thread, so the bytes do not depend on thread counts or BLAS. The innermost loops run over
-# the scatterers of a block with no loop-carried reduction, so LLVM's loop vectorizer makes
-# them SIMD without reordering any sum: each lane keeps its own partial sums, added at the
-# end in a fixed tree. cos / sin are polynomials (below), not libm calls, so that they
-# vectorize too. A lobe power p that is not an integer goes through libm pow, in a loop of
-# its own (slower, still exact).
+# thread. The innermost loops take the scatterers of a block WIDTH at a time into WIDTH
+# partial sums per term, with no reduction inside a chunk, so LLVM's loop vectorizer makes
+# them SIMD without reordering any sum; the lanes are added at the end in a fixed tree.
+# cos / sin are polynomials (below), not libm calls, so that they vectorize too. A lobe
+# power p that is not an integer goes through libm pow, in a loop of its own (slower, still
+# exact). B_l(n') is real for even l and imaginary for odd l, so the sums G_l of
+# SERIES_BATCH antennas meet it in two real matrix products (BLAS). BLAS splits a product
+# across threads by rows and columns, never along its sum, so the bytes do not depend on
+# thread counts; they depend on the BLAS build, as the factorised echo's interpolation does.
 #
 # Measured for the centroid model on one core in one run (2-core machine shared with other
 # jobs; min of 3): 6,400 antennas x 3,460-3,696 visible facets x 64 samples, the three
@@ -147,9 +150,15 @@ def _echo_direct(points, normals, weights, offsets, positions, freqs, radar):
 # in float32 numpy 0.39-0.57 s (memory-bound there). The first call in a process compiles
 # the kernels or loads them from numba's cache in __pycache__.
 
-# Scatterers per block of the vectorized loops (a power of two: the lanes are added as a
-# tree); the facet integral fills a block with the three corners of LANES // 3 facets.
+# Scatterers per block of the vectorized loops; the facet integral fills a block with the
+# three corners of LANES // 3 facets.
 LANES = 256
+# Partial sums per series term (a power of two: they are added as a tree at the end). A block's
+# items go through them WIDTH at a time, so each antenna clears and adds WIDTH lanes per term,
+# not one per item: a factorised cluster's coarse antenna sums only ~150 items. Measured on the
+# demo heart's factorised echo (one core): 8 and 16 lose the vectorizer (2x slower), 32 and 64
+# are alike; against a lane per item, the facets' series -20 % and the diffuse part's -25 %.
+WIDTH = 32
 # Truncation of the Chebyshev series (see above); measured relative L2 error against the
 # direct sum ~1e-9, five orders below the 1e-4 that DESIGN section 4 allows (1e-10 costs one
 # term more than 1e-8 and lets the corner weights grow 100 times larger, see below).
@@ -157,6 +166,10 @@ CHEBYSHEV_TOLERANCE = 1e-10
 # Largest |corner weight| / area kept in the series (see above): the series' relative error
 # 1e-10 grows at most to ~3e-6 of such a facet's integral.
 CORNER_GAIN_LIMIT = 1e4
+# Antennas whose series sums G_l meet B_l(n') in one matrix product: as a loop per antenna the product took
+# 13 % of a factorised echo's series (whose coarse antennas sum ~150 items each); batched, BLAS does it at
+# its own rate.
+SERIES_BATCH = 64
 
 
 @njit(inline="always")
@@ -182,7 +195,8 @@ def _integer_power(x, p_int):
 
 @njit(**_KERNEL_OPTIONS)
 def _range_bounds(facets, positions, first, last, low, high):
-    """Per antenna m, the least and greatest distance (mm) to the points of facets first[m]:last[m], into low, high (M,)."""
+    """Per antenna m, the least and greatest distance (mm) to the points of facets first[m]:last[m], into low, high (M,);
+    0 and 0 for an antenna with none."""
     block = LANES
     r2 = np.empty(block)
     lo = np.empty(block)
@@ -204,27 +218,36 @@ def _range_bounds(facets, positions, first, last, low, high):
         for k in range(1, min(block, max(last[m] - first[m], 1))):  # the lanes above were not filled
             a = min(a, lo[k])
             b = max(b, hi[k])
-        low[m] = math.sqrt(max(a, _TINY))
-        high[m] = math.sqrt(max(b, _TINY))
+        empty = last[m] <= first[m]
+        low[m] = 0.0 if empty else math.sqrt(max(a, _TINY))
+        high[m] = 0.0 if empty else math.sqrt(max(b, _TINY))
 
 
 @njit(**_KERNEL_OPTIONS)
 def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_per_mm, f_centre, half_slope, p, p_int,
-                    kappa, flag_limit, coef_re, coef_im, cycles_per_mm, n_centre, freqs, wavenumbers, factor,
+                    kappa, flag_limit, coef_even, coef_odd, cycles_per_mm, n_centre, freqs, wavenumbers, factor,
                     reflectivity, out):
-    """Echo of every antenna into out (M, 2 N) float64 (a complex128 (M, N) viewed as floats).
+    """Echo of every antenna added to out (M, 2 N) float64 (a complex128 (M, N) viewed as floats).
 
     facets : (8, K) rows x, y, z, nx, ny, nz, |weight|, arg(weight) / 2 pi (cycles) for point
     scatterers, or (13, K) rows x, ..., weight and the corner offsets p_0 - c, p_1 - c (rows
     7-12) for the facet integral; antenna m sums facets first[m]:last[m] (M,); centre_mm : (M,) R_m;
-    coef_re, coef_im : (L, N) B_l(n'); freqs, wavenumbers (rad/mm), factor, reflectivity : (N,):
-    each finished row is multiplied by factor, and a pair added exactly carries reflectivity.
-    p_int >= 0: the lobe power p is that integer (< 16), done by products.
+    coef_even : (ceil(L / 2), N) B_l(n') of the even l, real; coef_odd : (floor(L / 2), N) B_l(n') / j
+    of the odd l, real; freqs, wavenumbers (rad/mm), factor, reflectivity : (N,): each finished row
+    is multiplied by factor, and a pair added exactly carries reflectivity. p_int >= 0: the lobe
+    power p is that integer (< 16), done by products.
     """
     po = facets.shape[0] == 13
     n_facets = facets.shape[1]
     per_block = LANES // 3 if po else LANES
-    n_terms, n_samples = coef_re.shape
+    n_even, n_samples = coef_even.shape
+    n_odd = coef_odd.shape[0]
+    n_terms = n_even + n_odd
+    # G_l of SERIES_BATCH antennas, real parts in rows b and imaginary parts in rows SERIES_BATCH + b, and the
+    # pairs added exactly: the product with B_l runs once a batch is full, as two real matrix products (BLAS)
+    g_even = np.zeros((2 * SERIES_BATCH, n_even))
+    g_odd = np.zeros((2 * SERIES_BATCH, max(n_odd, 1)))
+    exact_rows = np.empty((SERIES_BATCH, 2 * n_samples))
     dist = np.empty(per_block)
     cos_theta = np.empty(per_block)
     lobe = np.empty(per_block)
@@ -236,10 +259,8 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
     c_im = np.zeros(LANES)
     t_even = np.empty(LANES)  # T_l(t) of the last even l, then of the last odd l
     t_odd = np.empty(LANES)
-    acc_re = np.empty((n_terms, LANES))  # per lane partial sums of G_l
-    acc_im = np.empty((n_terms, LANES))
-    s_re = np.empty(n_samples)
-    s_im = np.empty(n_samples)
+    acc_re = np.empty((n_terms, WIDTH))  # per lane partial sums of G_l
+    acc_im = np.empty((n_terms, WIDTH))
     d_re = np.empty(n_samples)
     d_im = np.empty(n_samples)
     flagged = np.empty(n_facets, dtype=np.int64)
@@ -247,15 +268,8 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
     k_max = wavenumbers.max()
     for m in range(positions.shape[0]):
         ax, ay, az, r_m = positions[m, 0], positions[m, 1], positions[m, 2], centre_mm[m]
-        # Only the lanes this antenna's blocks fill are cleared and added: a factorised cluster's
-        # coarse antenna sums ~100 items, not LANES. The tree starts at the least power of two
-        # holding them; the lanes above hold zeros, so the sums are the full tree's, bit for bit.
-        used = min(per_block, last[m] - first[m]) * (3 if po else 1)
-        lanes = 1
-        while lanes < used:
-            lanes *= 2
-        acc_re[:, :lanes] = 0.0
-        acc_im[:, :lanes] = 0.0
+        acc_re[:] = 0.0
+        acc_im[:] = 0.0
         n_flagged = 0
         for start in range(first[m], last[m], per_block):
             stop = min(start + per_block, last[m])
@@ -331,35 +345,47 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                     c_re[k] = amp * cos
                     c_im[k] = amp * sin
                     t[k] = (r - r_m) * inv_half_mm
+            padded = -(-size // WIDTH) * WIDTH
+            for k in range(size, padded):  # zero weights: they add exactly 0
+                c_re[k] = 0.0
+                c_im[k] = 0.0
+                t[k] = 0.0
             a0_re, a0_im = acc_re[0], acc_im[0]
-            for k in range(size):  # l = 0
-                a0_re[k] += c_re[k]
-                a0_im[k] += c_im[k]
+            for j in range(0, padded, WIDTH):  # l = 0
+                for q in range(WIDTH):
+                    a0_re[q] += c_re[j + q]
+                    a0_im[q] += c_im[j + q]
             if n_terms > 1:
                 a1_re, a1_im = acc_re[1], acc_im[1]
-                for k in range(size):  # l = 1
-                    a1_re[k] += c_re[k] * t[k]
-                    a1_im[k] += c_im[k] * t[k]
-                    t_even[k] = 1.0
-                    t_odd[k] = t[k]
+                for j in range(0, padded, WIDTH):  # l = 1
+                    for q in range(WIDTH):
+                        k = j + q
+                        a1_re[q] += c_re[k] * t[k]
+                        a1_im[q] += c_im[k] * t[k]
+                        t_even[k] = 1.0
+                        t_odd[k] = t[k]
             for l in range(2, n_terms - 1, 2):  # l and l + 1 in one pass: half the loads and stores
                 e_re, e_im, o_re, o_im = acc_re[l], acc_im[l], acc_re[l + 1], acc_im[l + 1]
-                for k in range(size):
-                    even = 2.0 * t[k] * t_odd[k] - t_even[k]
-                    odd = 2.0 * t[k] * even - t_odd[k]
-                    t_even[k] = even
-                    t_odd[k] = odd
-                    e_re[k] += c_re[k] * even
-                    e_im[k] += c_im[k] * even
-                    o_re[k] += c_re[k] * odd
-                    o_im[k] += c_im[k] * odd
+                for j in range(0, padded, WIDTH):
+                    for q in range(WIDTH):
+                        k = j + q
+                        even = 2.0 * t[k] * t_odd[k] - t_even[k]
+                        odd = 2.0 * t[k] * even - t_odd[k]
+                        t_even[k] = even
+                        t_odd[k] = odd
+                        e_re[q] += c_re[k] * even
+                        e_im[q] += c_im[k] * even
+                        o_re[q] += c_re[k] * odd
+                        o_im[q] += c_im[k] * odd
             if n_terms > 2 and n_terms % 2 == 1:  # the last, even, l
                 e_re, e_im = acc_re[n_terms - 1], acc_im[n_terms - 1]
-                for k in range(size):
-                    even = 2.0 * t[k] * t_odd[k] - t_even[k]
-                    e_re[k] += c_re[k] * even
-                    e_im[k] += c_im[k] * even
-        width = lanes  # add the lanes: a fixed tree of vectorized halvings
+                for j in range(0, padded, WIDTH):
+                    for q in range(WIDTH):
+                        k = j + q
+                        even = 2.0 * t[k] * t_odd[k] - t_even[k]
+                        e_re[q] += c_re[k] * even
+                        e_im[q] += c_im[k] * even
+        width = WIDTH  # add the lanes: a fixed tree of vectorized halvings
         while width > 1:
             width //= 2
             for l in range(n_terms):
@@ -367,23 +393,13 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                 for k in range(width):
                     lane_re[k] += lane_re[k + width]
                     lane_im[k] += lane_im[k + width]
-        s_re[:] = 0.0
-        s_im[:] = 0.0
+        b = m % SERIES_BATCH
         for l in range(n_terms):
-            g_re, g_im = acc_re[l, 0], acc_im[l, 0]
-            b_re, b_im = coef_re[l], coef_im[l]
-            for n in range(n_samples):
-                s_re[n] += g_re * b_re[n] - g_im * b_im[n]
-                s_im[n] += g_re * b_im[n] + g_im * b_re[n]
-        shift = r_m * cycles_per_mm  # demodulate: exp(j 2 pi x_m n'), then the common factor
-        for n in range(n_samples):
-            cos, sin = _cos_sin(shift * (n - n_centre))
-            d_re[n] = cos * factor[n]
-            d_im[n] = sin * factor[n]
-        row = out[m]
-        for n in range(n_samples):
-            row[2 * n] = s_re[n] * d_re[n] - s_im[n] * d_im[n]
-            row[2 * n + 1] = s_re[n] * d_im[n] + s_im[n] * d_re[n]
+            g = g_even if l % 2 == 0 else g_odd
+            g[b, l // 2] = acc_re[l, 0]
+            g[SERIES_BATCH + b, l // 2] = acc_im[l, 0]
+        row = exact_rows[b]
+        row[:] = 0.0
         for i in range(n_flagged):  # the pairs left out of the series, summed term by term
             k = flagged[i]
             dx, dy, dz = ax - facets[0, k], ay - facets[1, k], az - facets[2, k]
@@ -405,6 +421,24 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                 term = amp * reflectivity[n] * dd
                 row[2 * n] += term.real * cos - term.imag * sin
                 row[2 * n + 1] += term.real * sin + term.imag * cos
+        if b == SERIES_BATCH - 1 or m == positions.shape[0] - 1:
+            # s = sum_l G_l B_l = sum over even l of G_l B_l + j sum over odd l of G_l (B_l / j), each real
+            s_even = np.dot(g_even, coef_even)  # (2 SERIES_BATCH, N): rows b real, SERIES_BATCH + b imaginary
+            s_odd = np.dot(g_odd, coef_odd) if n_odd else np.zeros_like(s_even)
+            for a in range(b + 1):
+                m_a = m - b + a
+                shift = centre_mm[m_a] * cycles_per_mm  # demodulate: exp(j 2 pi x_m n'), then the common factor
+                for n in range(n_samples):
+                    cos, sin = _cos_sin(shift * (n - n_centre))
+                    d_re[n] = cos * factor[n]
+                    d_im[n] = sin * factor[n]
+                e_re, e_im, o_re, o_im = s_even[a], s_even[SERIES_BATCH + a], s_odd[a], s_odd[SERIES_BATCH + a]
+                row, exact_row = out[m_a], exact_rows[a]
+                for n in range(n_samples):
+                    s_re = e_re[n] - o_im[n]
+                    s_im = e_im[n] + o_re[n]
+                    row[2 * n] += (s_re * d_re[n] - s_im * d_im[n]) + exact_row[2 * n]
+                    row[2 * n + 1] += (s_re * d_im[n] + s_im * d_re[n]) + exact_row[2 * n + 1]
 
 
 def _series_order(w_max: float, tolerance: float) -> int:
@@ -455,11 +489,13 @@ def _kernel_rows(points, normals, weights, offsets) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate(rows))
 
 
-def _series_echo(rows, reach, positions, first, last, freqs, radar):
-    """(M, N) complex128: antenna m's echo of the kernel rows first[m]:last[m]; None where the series would
-    need more terms than there are frequency samples (then the direct sum is faster).
+def _series_echo(rows, reach, positions, first, last, freqs, radar, out=None, tolerance=None):
+    """(M, N) complex128: antenna m's echo of the kernel rows first[m]:last[m], added to out (default zeros);
+    None, out untouched, where the series would need more terms than there are frequency samples (then the
+    direct sum is faster).
 
-    reach : how far (mm) a corner's range can lie from its facet centre's (0 for points).
+    reach : how far (mm) a corner's range can lie from its facet centre's (0 for points); tolerance : the
+    series' truncation (default CHEBYSHEV_TOLERANCE, read at the call, as the bench varies it).
     """
     n = len(freqs)
     df = _uniform_step(freqs)
@@ -472,7 +508,7 @@ def _series_echo(rows, reach, positions, first, last, freqs, radar):
     cycles_per_mm = df * tau_per_mm
     n_centre = (n - 1) / 2
     coef = _chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre),
-                                   CHEBYSHEV_TOLERANCE)
+                                   CHEBYSHEV_TOLERANCE if tolerance is None else tolerance)
     if len(coef) > n:
         warnings.warn(f"chebyshev echo: a range span of {2 * half:.0f} mm needs {len(coef)} series terms for "
                       f"{n} frequency samples; using the direct sum", stacklevel=4)
@@ -484,10 +520,10 @@ def _series_echo(rows, reach, positions, first, last, freqs, radar):
     facets = rows.shape[0] == 13
     factor = reflectivity / wavenumbers**2 if facets else reflectivity
     flag_limit = 2.0 / (CORNER_GAIN_LIMIT * float(wavenumbers.min()) ** 2)
-    out = np.empty((len(positions), n), dtype=np.complex128)
+    out = np.zeros((len(positions), n), dtype=np.complex128) if out is None else out
     _chebyshev_echo(rows, positions, first, last, centre, 1.0 / half, tau_per_mm, freqs[0] + df * n_centre,
                     0.5 * radar.slope_hz_per_s if radar.rvp else 0.0, float(p), p_int, float(kappa), flag_limit,
-                    np.ascontiguousarray(coef.real), np.ascontiguousarray(coef.imag), cycles_per_mm, n_centre,
+                    np.ascontiguousarray(coef.real[0::2]), np.ascontiguousarray(coef.imag[1::2]), cycles_per_mm, n_centre,
                     freqs, wavenumbers, factor, reflectivity, out.view(np.float64))
     return out
 
