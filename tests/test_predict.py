@@ -26,7 +26,9 @@ from .test_train import TINY_CONFIG, make_dataset  # noqa: E402
 def tiny_run(tmp_path_factory):
     data = make_dataset(tmp_path_factory.mktemp("data"))
     run = tmp_path_factory.mktemp("run")
-    T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1")), data, out=run, progress=False)
+    # 20 refinement steps, not the default's 160: the tests check what refinement does, not how far it goes
+    T.train(T.parse_config(TINY_CONFIG.replace("epochs = 2", "epochs = 1") + "\n[refine]\nsteps = 20\n"), data,
+            out=run, progress=False)
     return data, run
 
 
@@ -108,6 +110,32 @@ def test_predict_refine_writes_the_refined_meshes_and_an_images_file_is_refused(
                           T.read_index(data), test.ids)
     with pytest.raises(InputError, match="images.npz: an images file holds no echo"):
         P.predict(run, images=file, refine=True)
+
+
+def test_refine_settings_come_from_the_run_folders_config_and_nothing_else_does(tiny_run, tmp_path):
+    """[refine] acts after training: RUN/config.toml sets it for predict and evaluate, without retraining;
+    the model and every other key stay the checkpoint's, and a broken file is named."""
+    import shutil
+
+    data, run = tiny_run
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    text = (run / "config.toml").read_text()
+    assert "steps = 20" in text
+    (copy / "config.toml").write_text(text.replace("epochs = 1", "epochs = 9").replace("steps = 20",
+                                                                                     "steps = 3\nstep_mm = 0.1"))
+    original, edited = T.load_run(run)[1], T.load_run(copy)[1]
+    assert (edited.refine.steps, edited.refine.step_mm) == (3, 0.1) and edited.optim == original.optim
+    plain = P.predict(copy, data, out=tmp_path / "plain", gallery=0)
+    refined = P.predict(copy, data, out=tmp_path / "refined", gallery=0, refine=True)
+    for sid in MeshSARDataset(data, "test").ids:
+        a, b = (trimesh.load(folder / f"{sid}.ply", process=False) for folder in (plain, refined))
+        assert 0.099 <= np.linalg.norm(b.vertices - a.vertices, axis=1).max() <= 3 * 0.1 + 1e-6
+    E.evaluate(copy, data, renders=0, samples=200, progress=False, refine=True, baselines=False)
+    assert "steps = 3, step_mm = 0.1" in (copy / "eval-seed-0-refine" / "summary.md").read_text()
+    (copy / "config.toml").write_text(text.replace("steps = 20", "steps = -1"))
+    with pytest.raises(Exception, match="config.toml"):
+        T.load_run(copy)
 
 
 def test_evaluate_refine_tables_before_and_after_with_a_paired_test(tiny_run):

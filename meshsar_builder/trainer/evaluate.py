@@ -16,6 +16,7 @@ origin: the check that the images help at all).
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import os
 from pathlib import Path
@@ -204,6 +205,10 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         write_json(out / "refine.json", refine_paired(rows))
     write_csv(out / "metrics.csv", rows)
     echo_note = f"; refined against {Path(refine_echo).name}'s echo" if refine and refine_echo else ""
+    if refine:  # the [refine] each refined method ran with, since RUN/config.toml may change it after training
+        echo_note += "; [refine] " + ", ".join(
+            f"{method}: " + ", ".join(f"{k} = {v}" for k, v in dataclasses.asdict(configs[method].refine).items())
+            for method in refiners)
     title = f"# {config.name} on {data.name} ({split}, test; {info['checkpoint']}, epoch {info['epoch']}{echo_note})\n\n"
     write_bytes(out / "summary.md", (title + markdown(summary)).encode())
     write_json(out / "summary.json", summary)

@@ -402,7 +402,9 @@ def load_run(run: str | os.PathLike, device: torch.device | str = "cpu",
     """(model in eval mode, config, checkpoint info) of a run folder.
 
     checkpoint: "best" (best.pt, the best validation Dice; the last epoch's checkpoint.pt
-    when the run had no validation) or "last" (checkpoint.pt).
+    when the run had no validation) or "last" (checkpoint.pt). The config is the checkpoint's,
+    but for [refine]: it acts after training (same_run leaves it out), so the run folder's
+    config.toml sets it, and a user tunes refinement there without retraining.
     """
     run = Path(run)
     if checkpoint not in ("best", "last"):
@@ -412,6 +414,8 @@ def load_run(run: str | os.PathLike, device: torch.device | str = "cpu",
     path = run / BEST if checkpoint == "best" and (run / BEST).exists() else run / CHECKPOINT
     state = load_checkpoint(path, device)
     config = parse_config(state["config_text"], str(run / "config.toml"))
+    if (run / "config.toml").exists():
+        config = dataclasses.replace(config, refine=load_config(run / "config.toml").refine)
     model = build_model(config, state["info"]).to(device)
     model.load_state_dict(state["model"])
     return model.eval(), config, {**state["info"], "checkpoint": path.name, "epoch": state["epoch"]}
