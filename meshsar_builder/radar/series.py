@@ -195,8 +195,8 @@ def _integer_power(x, p_int):
 
 @njit(**_KERNEL_OPTIONS)
 def _range_bounds(facets, positions, first, last, low, high):
-    """Per antenna m, the least and greatest distance (mm) to the points of facets first[m]:last[m], into low, high (M,);
-    0 and 0 for an antenna with none."""
+    """Per antenna m, the least and greatest distance (mm) to the points of facets first[m]:last[m], into low,
+    high (M,); 0 and 0 for an antenna with none."""
     block = LANES
     r2 = np.empty(block)
     lo = np.empty(block)
@@ -523,8 +523,8 @@ def _series_echo(rows, reach, positions, first, last, freqs, radar, out=None, to
     out = np.zeros((len(positions), n), dtype=np.complex128) if out is None else out
     _chebyshev_echo(rows, positions, first, last, centre, 1.0 / half, tau_per_mm, freqs[0] + df * n_centre,
                     0.5 * radar.slope_hz_per_s if radar.rvp else 0.0, float(p), p_int, float(kappa), flag_limit,
-                    np.ascontiguousarray(coef.real[0::2]), np.ascontiguousarray(coef.imag[1::2]), cycles_per_mm, n_centre,
-                    freqs, wavenumbers, factor, reflectivity, out.view(np.float64))
+                    np.ascontiguousarray(coef.real[0::2]), np.ascontiguousarray(coef.imag[1::2]), cycles_per_mm,
+                    n_centre, freqs, wavenumbers, factor, reflectivity, out.view(np.float64))
     return out
 
 
