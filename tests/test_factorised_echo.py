@@ -139,3 +139,29 @@ def test_diffuse_part_shares_the_clusters_within_its_budget(mesh_name, view):
     diffuse = RE.point_echo(*lit, grid.positions, freqs, lambert(radar), method="chebyshev")
     assert relative_error(both - specular, diffuse) <= 1e-3
     assert relative_error(both - diffuse, specular) <= 1e-3 * np.linalg.norm(diffuse) / np.linalg.norm(specular) + 1e-4
+
+
+@pytest.mark.parametrize("aperture, step_mm", [((80, 80), 2.0), ((24, 24), 6.0)])
+def test_clusters_without_scatterers_add_nothing_of_them(aperture, step_mm):
+    """Scatterers on one side of a torus only: the clusters (and, on the small aperture, the facets summed on
+    the aperture itself) that hold facets and no scatterers run the scatterers' call with nothing to sum, which
+    must add exactly their absence."""
+    from meshsar_builder.radar.diffuse import draw_scatterers, lambert, place, seen_by
+
+    radar = RP.RadarParams(aperture=aperture, step_mm=step_mm, **SMALL_GRID)
+    mesh = MESHES["torus"]()
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "anterior"))
+    seen = vis > 0
+    scatterers = draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(5))
+    lit = seen_by(*place(verts, faces, scatterers, radar), scatterers.face, vis)
+    side = lit[0][:, 0] > 25.0
+    lit = tuple(x[side] for x in lit)
+    cubes = lambda points: {tuple(c) for c in np.floor(points / RF.FACTORISED_CELL_MM).astype(int)}  # noqa: E731
+    assert cubes(verts[faces][seen].mean(axis=1)) - cubes(lit[0])  # some facets' cubes hold no scatterer
+    grid, freqs = RP.aperture(radar, "anterior"), RP.frequencies(radar)
+    both = RE.echo(verts[faces][seen], vis[seen], grid, freqs, radar, diffuse=(*lit, lambert(radar)))
+    alone = RE.echo(verts[faces][seen], vis[seen], grid, freqs, radar)
+    diffuse = RE.point_echo(*lit, grid.positions, freqs, lambert(radar), method="chebyshev")
+    assert np.isfinite(both).all()
+    assert relative_error(both - alone, diffuse) <= 1e-3
