@@ -96,10 +96,8 @@ class DatasetGeometry:
         return self._focused[params]
 
     def focused_targets(self, batch: dict, params, target: str) -> torch.Tensor:
-        """(B, V, S, H, W) float32 targets of a batch, each sample's focused once and kept (by sample id).
-
-        batch["radar_targets"], when given, is used as it is (the trainer benchmark's synthetic batch).
-        """
+        """(B, V, S, H, W) float32 targets of a batch, each sample's focused once and kept (by sample id);
+        batch["radar_targets"], when given, is used as it is (the trainer benchmark's synthetic batch)."""
         if "radar_targets" in batch:
             return batch["radar_targets"]
         setup = self.focused_setup(params)
@@ -402,9 +400,7 @@ def load_run(run: str | os.PathLike, device: torch.device | str = "cpu",
     """(model in eval mode, config, checkpoint info) of a run folder.
 
     checkpoint: "best" (best.pt, the best validation Dice; the last epoch's checkpoint.pt
-    when the run had no validation) or "last" (checkpoint.pt). The config is the checkpoint's,
-    but for [refine]: it acts after training (same_run leaves it out), so the run folder's
-    config.toml sets it, and a user tunes refinement there without retraining.
+    when the run had no validation) or "last" (checkpoint.pt).
     """
     run = Path(run)
     if checkpoint not in ("best", "last"):
@@ -413,9 +409,9 @@ def load_run(run: str | os.PathLike, device: torch.device | str = "cpu",
         raise InputError(f"{run}: no {CHECKPOINT}; train first with `meshsar train CONFIG --data OUT --out {run}`")
     path = run / BEST if checkpoint == "best" and (run / BEST).exists() else run / CHECKPOINT
     state = load_checkpoint(path, device)
-    config = parse_config(state["config_text"], str(run / "config.toml"))
-    if (run / "config.toml").exists():
-        config = dataclasses.replace(config, refine=load_config(run / "config.toml").refine)
+    own = run / "config.toml"  # the checkpoint's config but [refine], which acts after training (same_run): own's
+    config = parse_config(state["config_text"], str(own))
+    config = dataclasses.replace(config, refine=load_config(own).refine) if own.exists() else config
     model = build_model(config, state["info"]).to(device)
     model.load_state_dict(state["model"])
     return model.eval(), config, {**state["info"], "checkpoint": path.name, "epoch": state["epoch"]}
