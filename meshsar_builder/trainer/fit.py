@@ -40,6 +40,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import functools
+import math
 import os
 import time
 from pathlib import Path
@@ -186,15 +187,16 @@ def fit_corrected(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, 
 def specular_simulator(data: Path, faces: np.ndarray):
     """verts (n, 3) -> the noise-free specular echo (V, Lx, Ly, Lf) on the loss grid of a mesh with
     these faces, simulated as the build's radar stage simulates a sample (its recipe's radar
-    parameters, diffuse part off: its scatterers are the sample's own, which no scanner gives).
-    The recipe is read at the first call: a fit without corrections never makes one."""
+    parameters, diffuse part off: its scatterers are the sample's own, which no scanner gives;
+    noise off, so that no view images a noise volume echo_clean never holds). The recipe is
+    read at the first call: a fit without corrections never makes one."""
     from meshsar_builder.pipeline import recipe as recipe_mod
     from meshsar_builder.radar.render import render_sample
 
     @functools.cache
     def setting():
         recipe = recipe_mod.load(data / "recipe.toml")
-        return dataclasses.replace(recipe.radar, diffuse=False), recipe.images
+        return dataclasses.replace(recipe.radar, diffuse=False, snr_db=None, image_snr_db=math.inf), recipe.images
 
     return lambda verts: render_sample(verts, faces, *setting(), np.random.default_rng(0))["echo_clean"]
 
