@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-import pymeshlab
 
 # Signed volumes below this fraction of (longest edge)^3 count as zero (coplanar points, a
 # segment through an edge): a few hundred times the rounding of their products, no more, so
@@ -72,6 +71,8 @@ def pymeshlab_self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> n
 
     verts : (n, 3) float, faces : (m, 3) int  ->  (m,) bool
     """
+    import pymeshlab  # here: the trainer's metrics use only the test above, so training needs no pymeshlab
+
     meshset = pymeshlab.MeshSet()
     meshset.add_mesh(pymeshlab.Mesh(vertex_matrix=np.ascontiguousarray(verts, dtype=np.float64),
                                     face_matrix=np.ascontiguousarray(faces, dtype=np.int32)))
