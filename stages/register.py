@@ -33,7 +33,8 @@ preconditioner (nricp.py; issue 32); version 11: exact closest points from libig
 structure that forms no region of the surface (landmarks.surface_regions) is neither judged
 by label agreement nor landmarked; version 13: a flipped face is one turned over against its
 neighbourhood, not a smooth turn past 90 degrees (measures.flipped_faces), and a retry that
-the fold guard stopped too is kept where it lies closer to the subject.
+the fold guard stopped too is kept where it lies closer to the subject; version 14: a step that
+still folds after its repeats keeps its longest fold-free part, and the schedule goes on.
 The rounds' files are made in geometry/groupwise.py; this stage is their plan and one call
 per item.
 """
@@ -112,4 +113,4 @@ def finish(ctx: Context, results: Results) -> None:
 
 # Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
 # adds the first-order term on folded regions).
-STAGE = Stage(name=NAME, version=13, plan=plan, run=run, finish=finish, again=again)
+STAGE = Stage(name=NAME, version=14, plan=plan, run=run, finish=finish, again=again)

@@ -203,3 +203,28 @@ def test_a_fit_the_fold_guard_stopped_early_is_retried_stiffer_and_the_better_ke
             assert report["nricp"]["steps_kept"] == 4 and report["nricp"]["first_attempt"]["steps_kept"] == 3
         else:
             assert report["nricp"]["steps_kept"] == 3 and report["nricp"]["retry_attempt"]["steps_kept"] == 4
+
+
+def test_a_step_that_folds_keeps_its_longest_fold_free_part():
+    """_fold_free_part halves a folding step until no face turns over or crosses another: one
+    vertex of a sphere (radius 10 mm) pushed 100 mm down pierces the far side; an eighth of
+    the way (12.5 mm, a dimple) does not, a quarter (25 mm) does."""
+    from meshsar_builder.geometry.nricp import _AmbergSystem, _bad_faces, _fold_free_part
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
+    verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    system = _AmbergSystem(verts, faces, gamma=1.0)
+    x = system.identity()
+    x_step = x.copy()
+    top = int(np.argmax(verts[:, 2]))
+    x_step.reshape(system.n, 4, 3)[top, 3] = (0.0, 0.0, -100.0)
+    assert _bad_faces(verts, system.apply(x_step), faces).any()
+    blend, t = _fold_free_part(system, verts, faces, x, x_step)
+    assert t == 0.125
+    assert not _bad_faces(verts, system.apply(blend), faces).any()
+    np.testing.assert_allclose(system.apply(blend)[top], verts[top] + (0.0, 0.0, -12.5), atol=1e-9)
+    assert _bad_faces(verts, system.apply(x + 0.25 * (x_step - x)), faces).any()
+    # A step that folds at every halving is kept not at all.
+    x_step.reshape(system.n, 4, 3)[top, 3] = (0.0, 0.0, -1e4)
+    blend, t = _fold_free_part(system, verts, faces, x, x_step)
+    assert t == 0 and np.array_equal(blend, x)

@@ -34,8 +34,10 @@ Two further additions over the paper, both for thin vessels joined to chambers:
 - a fold guard: after each stiffness step, faces that turned over (against the pre-aligned
   template) or intersect another face have the stiffness s_i of the vertices around them
   raised, and Amberg's first-order term switched on (and raised) on the edges among them,
-  and the step is repeated; if that does not clear them, the fit stops at the last
-  fold-free step. The first-order term is needed there: the second-order one leaves a
+  and the step is repeated; if that does not clear them, the longest fold-free part of the
+  step is kept (half of it, a quarter, ...) and the schedule goes on, still stiffened there;
+  a step none of whose parts is fold-free ends the fit at the last fold-free one. The
+  first-order term is needed there: the second-order one leaves a
   linearly varying transform free, and such a field can turn faces over.
 Speed: the system changes only in its 4 x 4 diagonal data blocks between iterations of one
 step, so it is factorised once per step (SuperLU, the vertices in minimum degree order; again
@@ -375,6 +377,21 @@ def _bad_faces(aligned: np.ndarray, fit: np.ndarray, faces: np.ndarray) -> np.nd
     return flipped_faces(aligned, fit, faces) | self_intersecting_faces(fit, faces)
 
 
+def _fold_free_part(system, reference: np.ndarray, faces: np.ndarray, x: np.ndarray, x_step: np.ndarray,
+                    halvings: int = 4) -> tuple[np.ndarray, float]:
+    """The longest fold-free part of a step that folded: x + t (x_step - x) for the largest
+    t in 1/2, 1/4, ... (halvings of them) that turns over or crosses no face, and t (0 if none).
+
+    x, x_step : (4n, 3) transforms of the last fold-free fit and of the folded step. The fit
+    is linear in the transforms, so each blend moves every vertex t of its way along the step.
+    """
+    for k in range(1, halvings + 1):
+        blend = x + 0.5**k * (x_step - x)
+        if not _bad_faces(reference, system.apply(blend), faces).any():
+            return blend, 0.5**k
+    return x, 0.0
+
+
 def _grow(faces: np.ndarray, vertex_mask: np.ndarray, rings: int) -> np.ndarray:
     """Vertex mask grown by `rings` rings of neighbours."""
     for _ in range(rings):
@@ -401,7 +418,8 @@ def nricp(
     Folds are judged against `aligned`. With params.coarse_steps, the stiffest steps run
     first on the template simplified to params.coarse_vertices (_coarse_start).
     Returns the fitted vertices (n, 3) mm and a summary (JSON-ready): stiffness steps kept,
-    fold-guard repeats, vertices stiffened, and the coarse stage's own summary.
+    fold-guard repeats, vertices stiffened, the fraction kept of each step that still folded
+    after its repeats, and the coarse stage's own summary.
     """
     faces = np.asarray(faces, dtype=np.int64)
     frame = (aligned.mean(axis=0), float(np.linalg.norm(np.ptp(aligned, axis=0))))
@@ -456,7 +474,7 @@ def _coarse_start(
         None if start is None else verts + interpolation_matrix(verts, aligned, faces) @ (start - aligned),
         range(coarse_steps), frame)
     report = {"vertices": len(verts), "steps": coarse_steps, "fold_repeats": summary["fold_repeats"],
-              "step_distances_mm": summary["step_distances_mm"]}
+              "partial_steps": summary["partial_steps"], "step_distances_mm": summary["step_distances_mm"]}
     if "diverged" in summary or summary["steps_kept"] < coarse_steps:
         reason = "diverged" if "diverged" in summary else "stopped by the fold guard"
         return None, report | {"used": False, "reason": reason}
@@ -504,7 +522,7 @@ def _fit(
         # from the pre-aligned template, so the spline's guesses (poor far from the landmarks,
         # as at the apex) are not kept for free.
         x.reshape(system.n, 4, 3)[:, 3] += (start - centre) / scale - reference
-    steps_kept, repeats = steps.start, 0
+    steps_kept, repeats, partials = steps.start, 0, []
     # Divergence monitor: the mean distance of the fit's vertices to their closest subject
     # points (measured anyway by the matches) and its flipped faces, every iteration. A fit
     # whose distance grows past divergence_growth times the least it reached (and by more
@@ -516,7 +534,7 @@ def _fit(
         alpha, normal_power = params.stiffness[step], params.normal_weight[step]
         # A repeat goes on from the folded fit: flipped faces lose their matches (their normals
         # disagree), so the stiffened region relaxes back while the rest stays fitted.
-        x_step = x
+        x_step, partial = x, 0.0
         beta = beta0 * alpha / params.stiffness[0] if rows is not None else 0.0
         for attempt in range(params.fold_retries + 1):
             stiffness = alpha**2 * system.stiffness(vertex_weights, edge_weights)
@@ -554,6 +572,8 @@ def _fit(
                 x, steps_kept = x_step, steps_kept + 1
                 break
             if attempt == params.fold_retries:
+                x, partial = _fold_free_part(system, reference, faces, x, x_step)
+                partials.append(partial)
                 break
             repeats += 1
             region = _grow(faces, np.bincount(faces[bad].ravel(), minlength=system.n).astype(bool), 2)
@@ -561,7 +581,7 @@ def _fit(
             inside = region[system.edges].all(axis=1)
             edge_weights[inside] = params.fold_stiffening * np.maximum(edge_weights[inside], system.edge_base[inside])
         history.append(round(least * scale, 4))
-        if diverged or bad.any():
+        if diverged or (bad.any() and not partial):
             break  # keep the last fold-free step
     if diverged and steps_kept == 0:
         x = system.identity()  # a start that runs away is no fold-free step: back to the pre-aligned template
@@ -570,6 +590,8 @@ def _fit(
         "steps": steps.stop,
         "fold_repeats": repeats,
         "stiffened_vertices": int((vertex_weights > base_weights).sum()),
+        # Per step that still folded after its repeats, the fraction of it kept (0: none, the fit ends).
+        "partial_steps": partials,
         # Least mean vertex-to-subject distance (mm) reached by the end of each step run.
         "step_distances_mm": history,
     }
