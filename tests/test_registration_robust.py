@@ -93,6 +93,10 @@ def test_accept_names_a_divergence_twice_and_the_landmarks_a_fit_moved_away():
     with pytest.raises(MeshError, match="diverged twice: faces flipped in numbers at stiffness step 2, iteration 4 "
                                         r"\(mean distance 12.00 mm, least 1.00 mm, 40 faces flipped\); then surface"):
         accept({**ok, "nricp": nricp_summary}, PARAMS)
+    # Faces flipped in numbers before the fit's first measure: no least distance yet (JSON holds no infinity).
+    first = {"diverged": {**went, "reason": "faces flipped in numbers", "step": 0, "iteration": 0, "least_mm": None}}
+    with pytest.raises(MeshError, match=r"iteration 1 \(mean distance 12.00 mm, least none yet, 40 faces flipped\)"):
+        accept({**ok, "nricp": {"diverged": went, "first_attempt": first}}, PARAMS)
     moved = {**ok, "landmark_error_mm": 6.0, "landmark_start_error_mm": 2.0, "landmark_offenders": ["apex"],
              "landmark_retry": {"landmark_offenders": ["apex", "centroid:lv"]}}
     with pytest.raises(MeshError, match=r"landmark error 6.00 mm > the robust start's 2.00 mm \+ 2.0 mm "
@@ -228,3 +232,26 @@ def test_a_step_that_folds_keeps_its_longest_fold_free_part():
     x_step.reshape(system.n, 4, 3)[top, 3] = (0.0, 0.0, -1e4)
     blend, t = _fold_free_part(system, verts, faces, x, x_step)
     assert t == 0 and np.array_equal(blend, x)
+
+
+def test_a_fit_whose_steps_fold_keeps_their_fold_free_parts_and_goes_on(monkeypatch):
+    """nricp keeps the fold-free part of each step that folds past its repeats and runs on.
+    A stand-in fold, any face with a vertex moved more than a tenth of the radius (4 mm), makes
+    every step toward a sphere 10 mm larger fold: the fit still moves out, never past 4 mm, and
+    reports the parts it kept. Ending the fit at the first folding step left it where it began."""
+    import meshsar_builder.geometry.nricp as N
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    real = N._bad_faces
+
+    def moved_far(aligned, fit, faces_):  # in nricp's own units: scale-free, as a radius fraction
+        radius = np.linalg.norm(aligned - aligned.mean(axis=0), axis=1)
+        return real(aligned, fit, faces_) | (np.linalg.norm(fit - aligned, axis=1) > 0.1 * radius)[faces_].any(axis=1)
+
+    monkeypatch.setattr(N, "_bad_faces", moved_far)
+    params = RegistrationParams(coarse_steps=0, fold_retries=1)
+    fitted, summary = N.nricp(verts, faces, verts * 1.25, faces, params)
+    moved = np.linalg.norm(fitted - verts, axis=1)
+    assert moved.max() <= 4.0 + 1e-9 and moved.mean() > 2.0
+    assert summary["partial_steps"] and summary["partial_steps"][0] > 0

@@ -544,13 +544,12 @@ def _fit(
                 weights, targets, mean_distance = _matches(fit, faces, subject, template_area, params, normal_power,
                                                            distance)
                 flipped = int(flipped_faces(reference, fit, faces).sum())
-                if mean_distance > params.divergence_growth * least and mean_distance - least > floor:
-                    diverged = {"reason": "surface distance grew", "step": step, "iteration": iteration,
-                                "mean_mm": mean_distance * scale, "least_mm": least * scale, "flipped_faces": flipped}
-                elif flipped >= too_many:
-                    diverged = {"reason": "faces flipped in numbers", "step": step, "iteration": iteration,
-                                "mean_mm": mean_distance * scale, "least_mm": least * scale, "flipped_faces": flipped}
-                if diverged:
+                grew = mean_distance > params.divergence_growth * least and mean_distance - least > floor
+                if grew or flipped >= too_many:
+                    # least is infinite before a kept state's first measure: None, as JSON holds no infinity
+                    diverged = {"reason": "surface distance grew" if grew else "faces flipped in numbers",
+                                "step": step, "iteration": iteration, "mean_mm": mean_distance * scale,
+                                "least_mm": least * scale if np.isfinite(least) else None, "flipped_faces": flipped}
                     break
                 least = min(least, mean_distance)
                 data, rhs = system.data(weights, targets)
@@ -583,6 +582,8 @@ def _fit(
         history.append(round(least * scale, 4))
         if diverged or (bad.any() and not partial):
             break  # keep the last fold-free step
+        if partial:  # the least distance was the folded step's, never kept: the next step measures afresh
+            least = np.inf
     if diverged and steps_kept == 0:
         x = system.identity()  # a start that runs away is no fold-free step: back to the pre-aligned template
     summary = {

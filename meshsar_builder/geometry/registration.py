@@ -400,8 +400,9 @@ def _register_once(
 
 
 def _diverged_text(d: dict) -> str:
+    least = "none yet" if d["least_mm"] is None else f"{d['least_mm']:.2f} mm"
     return (f"{d['reason']} at stiffness step {d['step'] + 1}, iteration {d['iteration'] + 1} "
-            f"(mean distance {d['mean_mm']:.2f} mm, least {d['least_mm']:.2f} mm, {d['flipped_faces']} faces flipped)")
+            f"(mean distance {d['mean_mm']:.2f} mm, least {least}, {d['flipped_faces']} faces flipped)")
 
 
 def accept(report: dict, params: RegistrationParams, correspondence: bool = True) -> None:
