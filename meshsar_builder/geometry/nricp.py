@@ -36,9 +36,9 @@ Two further additions over the paper, both for thin vessels joined to chambers:
   raised, and Amberg's first-order term switched on (and raised) on the edges among them,
   and the step is repeated; if that does not clear them, the longest fold-free part of the
   step is kept (half of it, a quarter, ...) and the schedule goes on, still stiffened there;
-  a step none of whose parts is fold-free ends the fit at the last fold-free one. The
-  first-order term is needed there: the second-order one leaves a
-  linearly varying transform free, and such a field can turn faces over.
+  a step none of whose parts is fold-free ends the fit at the last fold-free one. The first-order
+  term is needed there: the second-order one leaves a linearly varying transform free, and such a
+  field can turn faces over.
 Speed: the system changes only in its 4 x 4 diagonal data blocks between iterations of one
 step, so it is factorised once per step (SuperLU, the vertices in minimum degree order; again
 after a fold-guard repeat changes the stiffness) and that factorisation preconditions
@@ -545,8 +545,7 @@ def _fit(
                                                            distance)
                 flipped = int(flipped_faces(reference, fit, faces).sum())
                 grew = mean_distance > params.divergence_growth * least and mean_distance - least > floor
-                if grew or flipped >= too_many:
-                    # least is infinite before a kept state's first measure: None, as JSON holds no infinity
+                if grew or flipped >= too_many:  # least_mm None before a first measure (JSON holds no infinity)
                     diverged = {"reason": "surface distance grew" if grew else "faces flipped in numbers",
                                 "step": step, "iteration": iteration, "mean_mm": mean_distance * scale,
                                 "least_mm": least * scale if np.isfinite(least) else None, "flipped_faces": flipped}
