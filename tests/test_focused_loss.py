@@ -12,7 +12,14 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import meshsar_builder.radar.params as RP  # noqa: E402
-from meshsar_builder.radar.focused import FocusedParams, FocusedSetup, fixed_convolution, focused_loss  # noqa: E402
+from meshsar_builder.radar.differentiable import facet_geometry_torch, occlusion_mask  # noqa: E402
+from meshsar_builder.radar.focused import (  # noqa: E402
+    FocusedParams,
+    FocusedSetup,
+    _gaussian_transfer,
+    fixed_convolution,
+    focused_loss,
+)
 from meshsar_builder.trainer import losses as L  # noqa: E402
 from meshsar_builder.trainer.model import icosphere_levels  # noqa: E402
 
@@ -62,10 +69,12 @@ class _quiet:
 
 
 def test_splat_is_the_trilinear_loop(scene):
-    """Every channel's weight shared among the 8 voxels around its point as a loop does it, outside voxels dropped."""
+    """Every channel's weight shared among the 8 voxels around its point as a loop does it, outside voxels dropped
+    (along w: beyond one slice of the grid)."""
     setup = scene["setup"]
     rng = np.random.default_rng(1)
     s, sizes = setup.shape[0], setup.padded
+    first, stop = np.array([setup.offset - 1, 0, 0]), np.array([setup.offset + s + 1, *sizes[1:]])
     # points across the grid and beyond its ends on every axis, and one exactly on a voxel
     coords = rng.uniform(-1.3, 1.3, (2, 40, 3)) * setup.params.half_extent_mm
     coords[0, 0] = [setup.u[3], setup.u[5], setup.w[2]]
@@ -75,16 +84,61 @@ def test_splat_is_the_trilinear_loop(scene):
     for b in range(2):
         for k in range(40):
             u, v, w = coords[b, k]
-            index = np.array([(w - setup.w[0]) / setup.params.range_mm + s // 2,
+            index = np.array([(w - setup.w[0]) / setup.params.range_mm + setup.offset,
                               (v - setup.u[0]) / setup.params.lateral_mm, (u - setup.u[0]) / setup.params.lateral_mm])
             low = np.floor(index).astype(int)
             for corner in np.ndindex(2, 2, 2):
                 at = low + corner
-                if np.all(at >= 0) and np.all(at < sizes):
+                if np.all(at >= first) and np.all(at < stop):
                     share = np.prod([f if c else 1 - f for f, c in zip(index - low, corner)])
                     expected[(b, slice(None), *at)] += share * weights[b, :, k]
     np.testing.assert_allclose(grid, expected, rtol=1e-12, atol=1e-12)
-    assert grid[0, :, 2 + s // 2, 5, 3] == pytest.approx(weights[0, :, 0])  # on a voxel: all of it there
+    assert grid[0, :, 2 + setup.offset, 5, 3] == pytest.approx(weights[0, :, 0])  # on a voxel: all of it there
+
+
+def test_padding_gives_the_linear_convolution_along_w(scene):
+    """The predicted volume against the same splat convolved on a grid padded to 4 S along w (no wrap-around possible):
+    the FFT grid's padding (focused._padding) wraps nothing onto the grid or the blur's reach. With the blur, the
+    least difference is not 0: its transfer is cut at the range Nyquist, so its kernel rings over the whole period."""
+    import dataclasses
+
+    for blur_mm, tolerance in ((0.0, 1e-12), (FocusedParams().blur_mm, 1e-5)):  # measured 1e-15, 2.7e-6 (2 S: 7e-7)
+        setup = FocusedSetup(dataclasses.replace(SCAN, diffuse=True), SCAN.views, FocusedParams(blur_mm=blur_mm))
+        assert _linear_along_w(setup, scene) <= tolerance
+
+
+def _linear_along_w(setup, scene) -> float:
+    """Largest difference, relative to the peak, of the predicted volumes from the 4 S-padded reference, 3 views."""
+    s, offset = setup.shape[0], setup.offset
+    verts = torch.as_tensor(scene["verts"] + [-28.0, 38.0, 40.0])[None]  # facets to 78 mm along each view axis
+    faces = scene["faces"]
+    worst = 0.0
+    for view in range(3):
+        predicted = setup.predicted(verts, faces, view)[0].numpy()
+        # the same splat, moved into a (4 S, H, W) grid
+        mask = occlusion_mask(verts, faces, setup.probes[view])
+        centroids, normals, areas = facet_geometry_torch(verts, faces)
+        weights, coords = setup.weights(centroids, normals, areas * mask, view)
+        channels = torch.stack([weights, setup.diffuse_weights(centroids, normals, areas, mask, view)], dim=1)
+        band = setup.splat(coords, channels)[0, :, offset - 1: offset + s + 1].numpy()  # (2, S + 2, H, W)
+        big = (4 * s, *setup.shape[1:])
+        at = 2 * s - s // 2  # where the grid starts in the big one
+        grids = np.zeros((2, *big))
+        grids[:, at - 1: at + s + 1] = band
+        centre = (at + s // 2, setup.shape[1] // 2, setup.shape[2] // 2)
+
+        def kernel(volume):
+            padded = np.zeros(big)
+            padded[at: at + s] = volume
+            return np.fft.rfftn(np.roll(padded, [-c for c in centre], axis=(0, 1, 2)))
+
+        blur = _gaussian_transfer(big, setup.spacing, setup.params.blur_mm)
+        magnitude = np.fft.irfftn(np.fft.rfftn(grids[0]) * kernel(setup.psf), s=big)
+        power = np.fft.irfftn(np.fft.rfftn(magnitude**2) * blur + np.fft.rfftn(grids[1]) * kernel(setup.psf**2) * blur,
+                              s=big)[at: at + s]
+        assert np.abs(grids[1]).max() > 0  # the diffuse channel is in it
+        worst = max(worst, float(np.abs(predicted - power).max() / np.abs(power).max()))
+    return worst
 
 
 def test_fixed_convolution_is_the_circular_sum_and_its_gradient_the_adjoint():

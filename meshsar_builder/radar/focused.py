@@ -74,6 +74,22 @@ def _axis(half: float, step: float) -> np.ndarray:
     return (np.arange(count) - count // 2) * step
 
 
+def _padding(shape, params: FocusedParams) -> tuple[int, tuple[int, int, int]]:
+    """(offset, padded shape): where the (S, H, W) grid sits along w in the zero-padded (P, H, W) grid of the FFTs.
+
+    The PSF kernel spans S slices (S // 2 before its centre), the blur `margin` more on each
+    side (6 sigma); facets are splatted within one slice of the grid. P is the least even size
+    at which no circular convolution wraps a facet's contribution onto the grid or onto the
+    margin the blur reads: the same values as a linear convolution (2 S, which it was, did
+    the same with a fifth more transform work).
+    """
+    s = shape[0]
+    margin = math.ceil(6 * params.blur_mm / params.range_mm)
+    size = max(s + s // 2 + margin + 1, 2 * s - s // 2 + margin)
+    size += size % 2
+    return (size - s) // 2, (size, *shape[1:])
+
+
 def _gaussian_transfer(shape, spacing, sigma):
     """Real FFT transfer function (rfftn layout) of a unit-sum Gaussian of sigma mm on a grid."""
     axes = []
@@ -87,7 +103,7 @@ class FocusedSetup:
     """Per view: frame, loss-grid antennas and frequencies, voxel grid, PSF and blur transfer functions.
 
     radar: the build's RadarParams (radar_from_index); views: names of the views in use.
-    The voxel grid of every view is (S, H, W) over (w, v, u); the FFT convolutions pad w to 2S.
+    The voxel grid of every view is (S, H, W) over (w, v, u); the FFT convolutions pad w to P (_padding).
     """
 
     def __init__(self, radar: RadarParams, views, params: FocusedParams = FocusedParams()):
@@ -98,7 +114,7 @@ class FocusedSetup:
         self.u = _axis(params.half_extent_mm, params.lateral_mm)
         self.w = _axis(params.half_extent_mm, params.range_mm)
         self.shape = (len(self.w), len(self.u), len(self.u))  # (S, H, W): w, v, u
-        self.padded = (2 * self.shape[0], *self.shape[1:])
+        self.offset, self.padded = _padding(self.shape, params)
         self.spacing = (params.range_mm, params.lateral_mm, params.lateral_mm)
         self.frames = np.stack([view_frame(v) for v in self.views])  # (V, 3, 3) rows u, v, w
         self.probes = [probe_points(radar, v) for v in self.views]
@@ -107,7 +123,7 @@ class FocusedSetup:
         self.blur = _gaussian_transfer(self.padded, self.spacing, params.blur_mm)
         self.psf = self._psf()  # (S, H, W) |h| of a point at the heart centre, max 1
         # the kernel's centre voxel (the point's own) moved to index 0: a convolution that shifts nothing
-        centre = (self.shape[0] // 2 + self.shape[0] // 2, self.shape[1] // 2, self.shape[2] // 2)
+        centre = (self.offset + self.shape[0] // 2, self.shape[1] // 2, self.shape[2] // 2)
         self.psf_transfer = np.fft.rfftn(np.roll(self._centred(self.psf), [-c for c in centre], axis=(0, 1, 2)))
         # |h|^2: how the diffuse part's scatterers add, incoherently, in expectation
         self.psf_power_transfer = np.fft.rfftn(np.roll(self._centred(self.psf**2), [-c for c in centre],
@@ -123,10 +139,9 @@ class FocusedSetup:
         return focus(np.asarray(echo), self.freqs, self.x_mm, self.y_mm, self.u, self.u, d, "hann")
 
     def _centred(self, volume: np.ndarray) -> np.ndarray:
-        """volume (S, H, W) zero-padded along w to (2S, H, W), centred."""
-        s = self.shape[0]
+        """volume (S, H, W) zero-padded along w to (P, H, W) at self.offset."""
         out = np.zeros(self.padded, dtype=np.float64)
-        out[s // 2: s // 2 + s] = volume
+        out[self.offset: self.offset + self.shape[0]] = volume
         return out
 
     def _psf(self) -> np.ndarray:
@@ -152,9 +167,8 @@ class FocusedSetup:
 
     def blurred(self, volume: np.ndarray) -> np.ndarray:
         """Gaussian blur of a (S, H, W) volume (zero-padded along w)."""
-        s = self.shape[0]
         out = np.fft.irfftn(np.fft.rfftn(self._centred(volume)) * self.blur, s=self.padded, axes=(0, 1, 2))
-        return out[s // 2: s // 2 + s]
+        return out[self.offset: self.offset + self.shape[0]]
 
     def target(self, echo: np.ndarray, sigma: float = 0.0) -> np.ndarray:
         """Debiased, blurred power (V, S, H, W) float32 of a sample's loss-grid echo (V, Lx, Ly, Lf).
@@ -231,16 +245,17 @@ class FocusedSetup:
         return mean_power_per_area(self.radar) * areas * visibility**2 * cos**2 * (z0 * z0 / r2) ** 2
 
     def splat(self, coords: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        """Trilinear splat of weights (B, C, F) at view coordinates (B, F, 3) into (B, C, 2S, H, W), centred along w.
+        """Trilinear splat of weights (B, C, F) at view coordinates (B, F, 3) into (B, C, P, H, W), the grid at
+        self.offset along w.
 
         C channels share the facets' positions (the specular and diffuse parts); the eight
-        corners of every facet and channel go in one scatter_add.
+        corners of every facet and channel go in one scatter_add. Along w only the grid and
+        one slice either side take weight (_padding: beyond, the convolutions would wrap).
         """
-        s = self.shape[0]
         batch, channels = weights.shape[:2]
         sizes = self.padded
-        # fractional voxel indices along (w, v, u); the padded w axis starts s // 2 earlier
-        position = torch.stack([(coords[..., 2] - self.w[0]) / self.params.range_mm + s // 2,
+        # fractional voxel indices along (w, v, u); the padded w axis starts self.offset slices earlier
+        position = torch.stack([(coords[..., 2] - self.w[0]) / self.params.range_mm + self.offset,
                                 (coords[..., 1] - self.u[0]) / self.params.lateral_mm,
                                 (coords[..., 0] - self.u[0]) / self.params.lateral_mm])  # (3, B, F)
         base = position.detach().floor()
@@ -250,8 +265,9 @@ class FocusedSetup:
                               device=base.device).T[:, :, None, None]  # (3, 8, 1, 1)
         index = base[:, None] + corner  # (3, 8, B, F)
         share = torch.where(corner.bool(), frac[:, None], 1 - frac[:, None]).prod(0)  # (8, B, F) trilinear weights
-        limit = torch.tensor(sizes, device=base.device)[:, None, None, None]
-        inside = ((index >= 0) & (index < limit)).all(0)  # (8, B, F)
+        low = torch.tensor([self.offset - 1, 0, 0], device=base.device)[:, None, None, None]
+        limit = torch.tensor([self.offset + self.shape[0] + 1, *sizes[1:]], device=base.device)[:, None, None, None]
+        inside = ((index >= low) & (index < limit)).all(0)  # (8, B, F)
         index = torch.minimum(index.clamp_min(0), limit - 1)
         flat = (index[0] * sizes[1] + index[1]) * sizes[2] + index[2]  # (8, B, F)
         values = torch.where(inside, share, torch.zeros_like(share))[:, :, None] * weights  # (8, B, C, F)
@@ -284,15 +300,14 @@ class FocusedSetup:
         diffuse = self.radar.diffuse and "diffuse" in parts  # the diffuse part's expected power beside the specular
         if diffuse:
             channels.append(self.diffuse_weights(centroids, normals, areas, mask, view))
-        # unbind, not indexing: each index's backward fills a zeroed (B, C, 2S, H, W) of its own
-        grids = self.splat(coords, torch.stack(channels, dim=1)).unbind(1)  # C x (B, 2S, H, W)
+        # unbind, not indexing: each index's backward fills a zeroed (B, C, P, H, W) of its own
+        grids = self.splat(coords, torch.stack(channels, dim=1)).unbind(1)  # C x (B, P, H, W)
         magnitude = fixed_convolution(grids[:1], (t["psf"],), self.padded)
         volumes, transfers = (magnitude * magnitude,), (t["blur"],)
         if diffuse:  # |h|^2 (scatterers add incoherently), then the blur
             volumes, transfers = (*volumes, grids[1]), (*transfers, t["psf_power_blur"])
         power = fixed_convolution(volumes, transfers, self.padded)
-        s = self.shape[0]
-        return power[:, s // 2: s // 2 + s]
+        return power[:, self.offset: self.offset + self.shape[0]]
 
 
 class _FixedConvolution(torch.autograd.Function):
