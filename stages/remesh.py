@@ -37,4 +37,4 @@ def run(ctx: Context, item: Item) -> dict:
     return {**checks, "volume_ml": checks["volume_mm3"] / 1000, "center_mm": ((lo + hi) / 2).tolist(), **item.data}
 
 
-STAGE = Stage(name=NAME, version=1, plan=plan, run=run)
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run)

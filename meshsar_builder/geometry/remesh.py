@@ -28,7 +28,8 @@ class RemeshParams:
     taubin_steps, taubin_lambda, taubin_mu: Taubin smoothing before remeshing
         (lambda > 0, mu < -lambda: shrink-free low-pass filter).
     iterations: isotropic remeshing iterations.
-    max_surface_mm: largest distance the remeshing may move the surface away from its input.
+    max_surface_mm: largest distance a remeshing iteration may move the surface away from its input
+        (the first iteration's result, for the others: _coarsen_onto).
     feature_deg: dihedral angle above which the remesher keeps an edge as a crease; high,
         since anatomical surfaces have no true creases and locked voxel creases can leave
         non-manifold fins.
@@ -150,14 +151,40 @@ def _clean(meshset: pymeshlab.MeshSet) -> None:
     meshset.meshing_remove_unreferenced_vertices()
 
 
-def _isotropic(meshset: pymeshlab.MeshSet, params: RemeshParams, iterations: int) -> None:
+def _isotropic(meshset: pymeshlab.MeshSet, params: RemeshParams, iterations: int, check: bool = True) -> None:
+    """Isotropic remeshing of the current mesh; check: refuse what moves its surface beyond params.max_surface_mm."""
     meshset.meshing_isotropic_explicit_remeshing(
         targetlen=_ABSOLUTE(params.edge_mm),
         iterations=iterations,
         featuredeg=params.feature_deg,
-        checksurfdist=True,
+        checksurfdist=check,
         maxsurfdist=_ABSOLUTE(params.max_surface_mm),
     )
+
+
+def _coarsen_onto(meshset: pymeshlab.MeshSet, params: RemeshParams) -> None:
+    """params.iterations of isotropic remeshing of the current (dense) mesh, its vertices put back onto it at the end.
+
+    The first iteration, which takes the marching-cubes density down to edge_mm, runs without
+    the remesher's surface-distance check: against a dense input that check cost three
+    quarters of the remeshing (1.2 of 1.6 s on a demo frame), while the remesher keeps the
+    vertices on the surface anyway. The other iterations check against the first one's result,
+    and the vertices are then projected onto the input surface (nearest point, at most edge_mm
+    away). Measured on 10 demo meshes: 2.8x faster, the same volume change against the marching-
+    cubes surface (-0.14 to -0.20 %) and mean vertex distance to it (0.011 mm); largest 0.06-0.17 mm
+    (0.06-0.12 with every iteration checked against the input).
+    """
+    source = meshset.current_mesh_id()
+    meshset.generate_copy_of_current_mesh()
+    copy = meshset.current_mesh_id()
+    _isotropic(meshset, params, 1, check=False)
+    if params.iterations > 1:
+        _isotropic(meshset, params, params.iterations - 1)
+    meshset.transfer_attributes_per_vertex(sourcemesh=source, targetmesh=copy, geomtransfer=True, colortransfer=False,
+                                           upperbound=_ABSOLUTE(params.edge_mm))
+    meshset.set_current_mesh(source)
+    meshset.delete_current_mesh()
+    meshset.set_current_mesh(copy)
 
 
 def _repair(meshset: pymeshlab.MeshSet, params: RemeshParams) -> None:
@@ -197,7 +224,7 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
         meshset.apply_coord_taubin_smoothing(
             lambda_=params.taubin_lambda, mu=params.taubin_mu, stepsmoothnum=params.taubin_steps
         )
-    _isotropic(meshset, params, params.iterations)
+    _coarsen_onto(meshset, params)
     _clean(meshset)
     for _ in range(params.repair_passes):
         verts_out, faces_out = _arrays(meshset)
