@@ -27,3 +27,24 @@ def test_ply_round_trip_is_exact(tmp_path_factory, n, m, with_labels, data):
     assert v.tobytes() == verts.tobytes() and np.array_equal(f, faces.reshape(-1, 3))
     assert (lab is None) if labels is None else np.array_equal(lab, labels)
     assert [p.name for p in path.parent.iterdir()] == ["mesh.ply"]  # no temporary left
+
+
+def test_quads_and_truncated_files_are_named(tmp_path):
+    """The fast triangle read falls back to plyfile's general one, which names what is wrong."""
+    import pytest
+    from plyfile import PlyData, PlyElement
+
+    from meshsar_builder.pipeline.errors import InputError
+
+    vertex = np.zeros(4, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")])
+    quad = np.empty(1, dtype=[("vertex_indices", "i4", (4,))])
+    quad["vertex_indices"] = [0, 1, 2, 3]
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(quad, "face")], text=False).write(
+        str(tmp_path / "quad.ply"))
+    with pytest.raises(InputError, match="quad.ply: faces must be triangles"):
+        read_ply(tmp_path / "quad.ply")
+    write_ply(tmp_path / "whole.ply", np.zeros((5, 3)), np.array([[0, 1, 2], [2, 3, 4]]))
+    data = (tmp_path / "whole.ply").read_bytes()
+    (tmp_path / "cut.ply").write_bytes(data[:-7])
+    with pytest.raises(InputError, match="cut.ply: not a readable PLY mesh .*early end-of-file"):
+        read_ply(tmp_path / "cut.ply")
