@@ -34,7 +34,8 @@ def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | Non
         v = ply["vertex"].data
         verts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
         raw = ply["face"].data["vertex_indices"]  # (m, 3) from the triangle read, else an array of lists
-        faces = (np.stack(raw) if raw.dtype == object else raw).astype(np.int64) if len(raw) else np.zeros((0, 3), np.int64)
+        faces = np.zeros((0, 3), np.int64) if not len(raw) else (np.stack(raw) if raw.dtype == object else raw).astype(
+            np.int64)
         labels = np.asarray(v["label"], dtype=np.uint8) if "label" in v.dtype.names else None
     except (OSError, ValueError, KeyError, EOFError, PlyParseError) as e:
         raise InputError(f"{path}: not a readable PLY mesh ({type(e).__name__}: {e})") from e

@@ -327,7 +327,7 @@ class _FixedConvolution(torch.autograd.Function):
 
 
 def fixed_convolution(volumes, transfers, shape) -> torch.Tensor:
-    """sum_i h_i (*) x_i: circular convolutions of real volumes x_i (B, *shape) with fixed real kernels h_i, (B, *shape).
+    """sum_i h_i (*) x_i, (B, *shape): circular convolutions of real volumes x_i (B, *shape), fixed real kernels h_i.
 
     transfers : each kernel's rfftn over the three volume axes, complex (shape[0], shape[1],
     shape[2] // 2 + 1) or broadcastable to it. The gradient is the adjoint, correlation with
