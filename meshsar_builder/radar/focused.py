@@ -80,8 +80,9 @@ def _padding(shape, params: FocusedParams) -> tuple[int, tuple[int, int, int]]:
     The PSF kernel spans S slices (S // 2 before its centre), the blur `margin` more on each
     side (6 sigma); facets are splatted within one slice of the grid. P is the least even size
     at which no circular convolution wraps a facet's contribution onto the grid or onto the
-    margin the blur reads: the same values as a linear convolution (2 S, which it was, did
-    the same with a fifth more transform work).
+    margin the blur reads: a linear convolution's values, but for the blur's far ringing (its
+    transfer is cut at the range Nyquist), 3e-6 of the peak. 2 S, which it was, did the same
+    with a fifth more transform work.
     """
     s = shape[0]
     margin = math.ceil(6 * params.blur_mm / params.range_mm)
