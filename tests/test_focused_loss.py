@@ -130,12 +130,13 @@ def _linear_along_w(setup, scene) -> float:
         def kernel(volume):
             padded = np.zeros(big)
             padded[at: at + s] = volume
-            return np.fft.rfftn(np.roll(padded, [-c for c in centre], axis=(0, 1, 2)))
+            return np.fft.rfftn(np.roll(padded, [-c for c in centre], axis=(0, 1, 2)), axes=(0, 1, 2))
 
         blur = _gaussian_transfer(big, setup.spacing, setup.params.blur_mm)
-        magnitude = np.fft.irfftn(np.fft.rfftn(grids[0]) * kernel(setup.psf), s=big)
-        power = np.fft.irfftn(np.fft.rfftn(magnitude**2) * blur + np.fft.rfftn(grids[1]) * kernel(setup.psf**2) * blur,
-                              s=big)[at: at + s]
+        axes = (0, 1, 2)
+        magnitude = np.fft.irfftn(np.fft.rfftn(grids[0], axes=axes) * kernel(setup.psf), s=big, axes=axes)
+        power = np.fft.irfftn(np.fft.rfftn(magnitude**2, axes=axes) * blur
+                              + np.fft.rfftn(grids[1], axes=axes) * kernel(setup.psf**2) * blur, s=big, axes=axes)[at: at + s]
         assert np.abs(grids[1]).max() > 0  # the diffuse channel is in it
         worst = max(worst, float(np.abs(predicted - power).max() / np.abs(power).max()))
     return worst
