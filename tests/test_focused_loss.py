@@ -135,8 +135,9 @@ def _linear_along_w(setup, scene) -> float:
         blur = _gaussian_transfer(big, setup.spacing, setup.params.blur_mm)
         axes = (0, 1, 2)
         magnitude = np.fft.irfftn(np.fft.rfftn(grids[0], axes=axes) * kernel(setup.psf), s=big, axes=axes)
-        power = np.fft.irfftn(np.fft.rfftn(magnitude**2, axes=axes) * blur
-                              + np.fft.rfftn(grids[1], axes=axes) * kernel(setup.psf**2) * blur, s=big, axes=axes)[at: at + s]
+        spectrum = np.fft.rfftn(magnitude**2, axes=axes) * blur + np.fft.rfftn(grids[1], axes=axes) * kernel(
+            setup.psf**2) * blur
+        power = np.fft.irfftn(spectrum, s=big, axes=axes)[at: at + s]
         assert np.abs(grids[1]).max() > 0  # the diffuse channel is in it
         worst = max(worst, float(np.abs(predicted - power).max() / np.abs(power).max()))
     return worst
