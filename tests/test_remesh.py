@@ -71,6 +71,20 @@ def test_dense_input_is_coarsened_onto_its_surface(ellipsoid, remeshed_ellipsoid
     assert mesh_checks(verts, faces)["volume_mm3"] == pytest.approx(reference["volume_mm3"], rel=1e-3)
 
 
+def test_coarse_input_is_remeshed_with_every_iteration_checked(monkeypatch):
+    """An input with faces longer than the target (trimesh's capsule: faces the cylinder's length) never takes
+    the unchecked path, which broke a thin capsule into 3 components."""
+    import meshsar_builder.geometry.remesh as R
+
+    def unchecked(meshset, params):
+        raise AssertionError("a coarse input took _coarsen_onto")
+
+    monkeypatch.setattr(R, "_coarsen_onto", unchecked)
+    capsule = trimesh.creation.capsule(height=150.0, radius=6.0, count=[32, 32])
+    verts, faces = remesh(capsule.vertices, capsule.faces, RemeshParams(edge_mm=4.0))
+    assert mesh_checks(verts, faces)["components"] == 1
+
+
 def test_sphere_remeshed_with_inverted_faces_comes_out_outward():
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=20.0)
     verts, faces = remesh(sphere.vertices, sphere.faces[:, ::-1], RemeshParams(edge_mm=2.5))

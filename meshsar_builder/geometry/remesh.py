@@ -14,6 +14,7 @@ import pymeshlab
 import trimesh
 
 from meshsar_builder.geometry.intersections import self_intersecting_faces
+from meshsar_builder.geometry.measures import unique_edges
 from meshsar_builder.pipeline.errors import MeshError
 
 # pymeshlab renamed AbsoluteValue to PureValue (2022.2); both mean "in mesh units" (mm here).
@@ -218,7 +219,9 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
 
     verts : (n, 3) float mm, faces : (m, 3) int  ->  (n', 3) float, (m', 3) int64.
     The result has outward normals. A surface that is not closed genus 0 without
-    self-intersections after params.repair_passes repairs raises MeshError.
+    self-intersections after params.repair_passes repairs raises MeshError. An input denser
+    than the target everywhere (median edge under half of edge_mm, none over it) is coarsened
+    by _coarsen_onto; any other is remeshed with every iteration checked against it.
     """
     meshset = _meshset(verts, faces)
     _clean(meshset)
@@ -226,9 +229,9 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
         meshset.apply_coord_taubin_smoothing(
             lambda_=params.taubin_lambda, mu=params.taubin_mu, stepsmoothnum=params.taubin_steps
         )
-    tri = np.asarray(verts)[np.asarray(faces)]
-    edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
-    if np.median(edges) < params.edge_mm / 2 and edges.max() < params.edge_mm:  # dense everywhere: marching cubes
+    edges = unique_edges(np.asarray(faces))
+    lengths = np.linalg.norm(np.asarray(verts)[edges[:, 0]] - np.asarray(verts)[edges[:, 1]], axis=1)
+    if np.median(lengths) < params.edge_mm / 2 and lengths.max() < params.edge_mm:  # dense everywhere: marching cubes
         _coarsen_onto(meshset, params)
     else:
         _isotropic(meshset, params, params.iterations)
