@@ -7,6 +7,9 @@ CUDA device runs; the "cuda" cases run where torch sees a GPU and are skipped el
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -92,6 +95,102 @@ def test_chunks_over_antennas_and_facets_sum_to_one_pass(monkeypatch, device):
     assert relative(RG.echo(*args, device=device), whole) < 1e-14
     assert relative(whole, RE.echo(*args, method="direct")) < 1e-12
     assert not RG.echo(tri[:0], np.ones(0), *args[2:], device=device).any()
+
+
+# Runs radar/cuda_sum.py's kernel in numba's CUDA simulator: the variable must be set before numba loads.
+SIMULATOR = """
+import sys
+import numpy as np
+from meshsar_builder.radar import cuda_sum
+from meshsar_builder.radar.params import RadarParams
+
+case = np.load(sys.argv[1])
+radar = RadarParams(rvp=bool(case["rvp"]), reflectivity=str(case["reflectivity"]))
+edges = case["edges"] if case["edges"].size else None
+np.save(sys.argv[2], cuda_sum.direct_sum(case["centres"], case["normals"], case["weights"], edges, case["positions"],
+                                         case["freqs"], radar))
+"""
+
+
+@pytest.mark.parametrize("facet, rvp, reflectivity", [("po", True, "lobe"), ("point", False, "po")])
+def test_the_cuda_kernel_equals_the_torch_direct_sum_in_numbas_simulator(tmp_path, rvp, reflectivity, facet):
+    """The GPU's kernel, run on the CPU by numba's CUDA simulator (CI has no GPU), against echo_chunk's sum.
+
+    Facets of a sphere seen from 3 antennas take the closed form, sub-millimetre ones the
+    series (both counted below); 150 facets are several per lane, and 70 frequencies more
+    groups than a block has warps, the last one partial; point scatterers carry complex
+    weights (the diffuse part).
+    """
+    import trimesh
+
+    from meshsar_builder.radar.cuda_sum import GROUP, WARP, WARPS
+    from meshsar_builder.radar.differentiable import SERIES_GAP
+
+    rng = np.random.default_rng(1)
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=40.0)
+    small = rng.normal(size=(30, 1, 3)) * 10 + rng.normal(size=(30, 3, 3)) * 0.3  # sub-millimetre facets
+    tri = np.concatenate([sphere.vertices[sphere.faces][:120], small])
+    centres, normals, areas = RV.triangle_geometry(tri)
+    radar = RP.RadarParams(rvp=rvp, reflectivity=reflectivity, n_samples=70, echo_decimation=(1, 1, 1),
+                           loss_decimation=(1, 1, 1))
+    freqs = RP.frequencies(radar)
+    positions = np.array([[0.0, 0.0, 200.0], [30.0, -20.0, 210.0], [-50.0, 10.0, 190.0]])
+    weights = areas * rng.uniform(0.2, 1.0, len(areas))
+    edges = tri - centres[:, None]
+    if facet == "po":
+        # the corner phases' spread per pair, as the kernel's branch sees it
+        toward = positions[:, None] - centres[None]
+        beta = -2 * np.einsum("mkc,kic->mki", toward, edges) / np.linalg.norm(toward, axis=-1)[..., None]
+        spread = np.ptp(beta, axis=-1) * (2e-3 * np.pi / RP.SPEED_OF_LIGHT_M_PER_S) * freqs.min()
+        assert 0 < (spread <= SERIES_GAP).sum() < spread.size  # both branches
+    else:
+        weights = weights * np.exp(1j * rng.uniform(0.0, 2 * np.pi, len(weights)))
+    assert len(freqs) > WARPS * GROUP and len(freqs) % GROUP and len(tri) > 4 * WARP
+    np.savez(tmp_path / "case.npz", centres=centres, normals=normals, weights=weights, positions=positions,
+             freqs=freqs, edges=edges if facet == "po" else np.zeros(0), rvp=rvp, reflectivity=reflectivity)
+    subprocess.run([sys.executable, "-c", SIMULATOR, str(tmp_path / "case.npz"), str(tmp_path / "got.npy")],
+                   env={**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}, check=True)
+    got = np.load(tmp_path / "got.npy")
+    expected = RG._direct_sum(centres, normals, weights, edges if facet == "po" else None, positions, freqs, radar,
+                              "cpu")
+    assert got.shape == expected.shape == (3, 70)
+    # ~700 rad phases carry ~1e-13 rad of rounding, which the two sums round differently (measured 4-8e-14)
+    assert relative(got, expected) < 1e-12, relative(got, expected)
+
+
+def test_a_kernel_that_fails_to_compile_is_named_with_the_versions(tmp_path):
+    """numba-cuda's compile errors (one release fails under numpy 2.5) come back naming the kernel and the versions."""
+    script = """
+import numpy as np
+from meshsar_builder.pipeline.errors import MeshsarError
+from meshsar_builder.radar import cuda_sum
+from meshsar_builder.radar.params import RadarParams
+
+class Broken:
+    def __getitem__(self, config):
+        def launch(*args):
+            raise AttributeError("module 'numpy' has no attribute 'row_stack'")
+        return launch
+
+cuda_sum._compiled["kernel"] = Broken()
+try:
+    cuda_sum.direct_sum(np.zeros((1, 3)), np.array([[0, 0, 1.0]]), np.ones(1), None, np.array([[0, 0, 200.0]]),
+                        np.array([7.7e10, 7.8e10]), RadarParams())
+except MeshsarError as error:
+    print(error)
+"""
+    run = subprocess.run([sys.executable, "-c", script], env={**os.environ, "NUMBA_ENABLE_CUDASIM": "1"},
+                         check=True, capture_output=True, text=True)
+    assert "CUDA echo kernel failed to compile or run on cuda:0: AttributeError" in run.stdout
+    assert "row_stack" in run.stdout and "numba " in run.stdout and "numpy " in run.stdout
+
+
+def test_the_kernel_takes_evenly_spaced_frequencies_only():
+    from meshsar_builder.radar.cuda_sum import uniform
+
+    freqs = RP.frequencies(RP.RadarParams())
+    assert uniform(freqs) and uniform(freqs[::2]) and uniform(freqs[:1])
+    assert not uniform(np.r_[freqs[:5], freqs[6:]]) and not uniform(np.full(3, freqs[0]))
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -229,7 +328,6 @@ def test_a_local_dask_cluster_can_take_gpu_items_and_keeps_the_allocators_defaul
     """`--scheduler local:N` workers share this machine's GPUs, so each declares one (a CUDA build can
     use them); and they run without Dask's MALLOC_TRIM_THRESHOLD_ (it cost their items ~15 % more CPU),
     with its one-thread settings kept."""
-    import os
 
     from meshsar_builder.pipeline.runner import DaskPool
 

@@ -144,7 +144,7 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
         })
     return {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "facet": radar.facet,
             "warm_up_seconds": warm_up, "peak_memory_bytes": int(torch.cuda.max_memory_allocated()),
-            "chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views}
+            "imaging_chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views}
 
 
 # Floating-point operations per antenna-scatterer pair of the production kernel

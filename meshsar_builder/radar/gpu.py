@@ -1,19 +1,18 @@
-"""The radar of one view on a torch device: the echo as a direct sum, and range-migration imaging.
+"""The radar of one view on a GPU: the echo as a direct sum, and range-migration imaging.
 
 The build's radar stage uses this for `[radar] device = "cuda"` (or `meshsar build
 --device cuda`); the numba echo and numpy imaging stay the default (`device = "cpu"`).
-Everything here runs on any torch device, so the tests check it on the CPU against the
-numba path; on a CUDA device it only changes where the arithmetic is done.
 
 - Echo: the same model as radar.echo (DESIGN section 4), evaluated as the direct sum over
-  (antenna, frequency, facet) in float64 (complex128), chunked so that a chunk's
-  temporaries stay near DEVICE_CHUNK_BYTES. Per chunk it calls
-  differentiable.echo_chunk, the facet integral the trainer's radar loss differentiates:
-  one copy of that math serves both. Facet geometry (centroids, normals, areas, corner
-  offsets) comes from the same numpy code as the CPU echo, so both start from the same
-  bits. The direct sum is the model itself, not a series, so there is no tail to check.
-- Imaging: radar.imaging.focus in complex128: the same padded spectral grid
-  (imaging.spectral_grid) and window, the 2-D FFT, each range slice's exp(-j kz d)
+  (antenna, frequency, facet) in float64. On a CUDA device it is one fused kernel
+  (radar/cuda_sum.py, numba-cuda). On any other torch device (the tests run it on the
+  CPU) it is differentiable.echo_chunk, the facet integral the trainer's radar loss
+  differentiates, over chunks whose temporaries stay near CPU_CHUNK_BYTES; the kernel is
+  tested against it. Facet geometry (centroids, normals, areas, corner offsets) comes
+  from the same numpy code as the CPU echo, so all start from the same bits. The direct
+  sum is the model itself, not a series, so there is no tail to check.
+- Imaging: radar.imaging.focus in complex128 on a torch device: the same padded spectral
+  grid (imaging.spectral_grid) and window, the 2-D FFT, each range slice's exp(-j kz d)
   computed exactly (no phasor recurrence), the explicit DFT onto the pixel centres.
   Returns complex64 like the numpy focus, and the channels (max over range, dB, depth)
   are made from it by imaging.volume_images on the CPU: 0.6 M values, the same code.
@@ -44,14 +43,13 @@ else:
     _TORCH_MISSING = None
     from meshsar_builder.radar.differentiable import echo_chunk
 
-# Bytes a chunk's temporaries may take: 8 GiB on a GPU, capped at a quarter of its free
-# memory (chunk_bytes). The eager sum is bound by memory traffic, and fewer, larger chunks
-# cut it: on an H100 a view's echo took 0.75, 0.57, 0.52 and 0.49 s at 2, 4, 8 and 16 GiB,
-# peaking at 1.5, 3.0, 6.1 and 12.1 GB. 32 MiB on the CPU, where chunks that stay in cache ran 3x
-# faster than 2 GiB ones (1.4 s against 4.3 s for 12 M facet terms on one core). Peak
-# bytes per (antenna, facet, frequency) term of one echo_chunk call, measured on the CPU
-# (resident-set high-water mark, 4 M terms): 125 for the facet integral (~15 float64
-# arrays of the chunk's size inside facet_phasor), 51 for point scatterers.
+# Bytes a chunk's temporaries may take. On a GPU, the imaging's range slices: 8 GiB, capped
+# at a quarter of its free memory (chunk_bytes). On the CPU, the torch echo's chunks: 32 MiB,
+# where chunks that stay in cache ran 3x faster than 2 GiB ones (1.4 s against 4.3 s for
+# 12 M facet terms on one core). Peak bytes per (antenna, facet, frequency) term of one
+# echo_chunk call, measured on the CPU (resident-set high-water mark, 4 M terms): 125 for
+# the facet integral (~15 float64 arrays of the chunk's size inside facet_phasor), 51 for
+# point scatterers.
 DEVICE_CHUNK_BYTES = 8 << 30
 CPU_CHUNK_BYTES = 32 << 20
 BYTES_PER_TERM = 128
@@ -123,23 +121,16 @@ def echo(tri: np.ndarray, visibility: np.ndarray, positions, freqs: np.ndarray, 
 
 def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, positions: np.ndarray,
                freqs: np.ndarray, radar: RadarParams, device: str = "cuda") -> np.ndarray:
-    """radar.echo.point_echo on `device`: (M, N) complex128 of point scatterers with real or complex weights (K,).
-
-    The sum is linear in the weights, so a complex weight is its real part's echo plus j
-    times its imaginary part's (echo_chunk takes real weights).
-    """
-    weights = np.asarray(weights)
-    if not np.iscomplexobj(weights):
-        return _direct_sum(points, normals, weights.astype(np.float64), None, positions, freqs, radar, device)
-    return (_direct_sum(points, normals, weights.real, None, positions, freqs, radar, device)
-            + 1j * _direct_sum(points, normals, weights.imag, None, positions, freqs, radar, device))
+    """radar.echo.point_echo on `device`: (M, N) complex128 of point scatterers with real or complex weights (K,)."""
+    return _direct_sum(points, normals, np.asarray(weights), None, positions, freqs, radar, device)
 
 
 def _direct_sum(scatterers, normals, weights, edges, positions, freqs, radar: RadarParams, device: str) -> np.ndarray:
-    """The direct sum of echo_chunk over chunks on `device`: (M, N) complex128.
+    """The direct sum on `device`: (M, N) complex128, one CUDA kernel on a GPU (radar/cuda_sum.py), else echo_chunk's.
 
-    scatterers, normals (K, 3); weights (K,) float; edges (K, 3, 3) corner offsets for the
-    facet integral, or None for point scatterers; positions (M, 3) mm or an Aperture; freqs (N,) Hz.
+    scatterers, normals (K, 3); weights (K,) real or complex; edges (K, 3, 3) corner offsets
+    for the facet integral, or None for point scatterers; positions (M, 3) mm or an
+    Aperture; freqs (N,) Hz.
     """
     dev = check_device(device)
     positions = positions.positions if isinstance(positions, Aperture) else positions  # no factorisation here
@@ -147,12 +138,20 @@ def _direct_sum(scatterers, normals, weights, edges, positions, freqs, radar: Ra
     freqs = np.asarray(freqs, dtype=np.float64)
     if len(weights) == 0 or len(positions) == 0:
         return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
+    if dev.type == "cuda":
+        from meshsar_builder.radar.cuda_sum import direct_sum
+
+        index = torch.cuda.current_device() if dev.index is None else dev.index
+        return direct_sum(scatterers, normals, weights, edges, positions, freqs, radar, index)
+    if np.iscomplexobj(weights):  # linear in the weights; echo_chunk takes real ones
+        return (_direct_sum(scatterers, normals, weights.real, edges, positions, freqs, radar, device)
+                + 1j * _direct_sum(scatterers, normals, weights.imag, edges, positions, freqs, radar, device))
     on = functools.partial(torch.as_tensor, dtype=torch.float64, device=dev)
     scatterers, normals, weights, positions_t, freqs_t = map(on, (scatterers, normals, weights, positions, freqs))
     edges = None if edges is None else on(edges)
-    # Facets first, then antennas: a chunk spans whole facet ranges of many antennas
-    # (6,000 facets x 64 samples is 0.4 M terms, so ~40 antennas per 2 GB chunk), and a
-    # mesh too large for one antenna per chunk is split over its facets instead.
+    # Facets first, then antennas: a chunk spans whole facet ranges of as many antennas as
+    # fit, and a mesh too large for one antenna per chunk (6,000 facets x 64 samples is
+    # 0.4 M terms, a 32 MiB chunk 0.26 M) is split over its facets instead.
     terms = max(1, chunk_bytes(dev) // BYTES_PER_TERM)
     facet_step = max(1, min(len(weights), terms // len(freqs)))
     antenna_step = max(1, terms // (facet_step * len(freqs)))
