@@ -80,6 +80,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
             from meshsar_builder.bench.trainer import result_name
 
             print(f"{part}: {Path(args.out) / result_name(args.device)}")
+        elif part == "radar-throughput" and args.device != "cpu":
+            print(f"{part}: {Path(args.out) / 'radar_throughput-cuda.json'}")
         else:
             print(f"{part}: {Path(args.out) / (part.replace('-', '_') + '.json')}")  # radar-loss -> radar_loss.json
     return 0
@@ -312,7 +314,8 @@ def parser() -> argparse.ArgumentParser:
                                      "paper-scale target (writes pipeline-<name>.json)")
     be.add_argument("--workers", type=int, default=2, help="with --recipe: local worker processes (default 2)")
     be.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
-                    help="trainer part: where steps are timed (cuda: fp32 and mixed precision; default cpu)")
+                    help="trainer part: where steps are timed (cuda: fp32 and mixed precision); radar-throughput "
+                         "part: where the workers render (default cpu)")
     be.set_defaults(func=cmd_bench)
     return p
 

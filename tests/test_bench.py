@@ -169,3 +169,37 @@ def test_radar_factorised_profile_splits_the_echo_and_restores_it():
     assert RS._series_echo is before
     assert row["clusters"] > 0 and 0 < row["pairs_share_of_the_series"] < 1
     assert 0 < row["seconds_series"] < row["seconds"] and row["seconds_interpolation"] > 0
+
+
+def test_throughput_worker_counts_are_one_half_and_all_cores():
+    from meshsar_builder.bench.throughput import worker_counts
+
+    assert worker_counts(1) == [1] and worker_counts(2) == [1, 2] and worker_counts(3) == [1, 3]
+    assert worker_counts(16) == [1, 8, 16]
+
+
+@pytest.mark.slow  # spawns worker processes, each loading numba's kernels
+def test_radar_throughput_renders_in_every_worker_and_counts_their_span(tmp_path):
+    """Two workers, one sample each after their warm-up: the rate is their samples over the common span."""
+    import trimesh
+
+    from meshsar_builder.bench.throughput import run
+
+    mesh = trimesh.creation.icosphere(2, radius=40.0)
+    result = run(tmp_path, mesh.vertices, mesh.faces, counts=[2], samples=1)
+    (two,) = result["runs"]
+    assert two["processes"] == 2 and two["samples_each"] == 1
+    assert two["samples_per_second"] == pytest.approx(2 / two["wall_seconds"])
+    assert read_json(tmp_path / "radar_throughput.json") == result and result["device"] == "cpu"
+
+
+def test_radar_throughput_on_cuda_is_refused_before_any_worker_starts(tmp_path):
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: the refusal is for machines without")
+    from meshsar_builder.bench.throughput import run
+    from meshsar_builder.pipeline.errors import MeshsarError
+
+    with pytest.raises(MeshsarError, match="CUDA is not available"):
+        run(tmp_path, np.zeros((3, 3)), np.array([[0, 1, 2]]), device="cuda")
+    assert not (tmp_path / "radar_throughput-cuda.json").exists()

@@ -43,7 +43,7 @@ from meshsar_builder.pipeline.io import read_json, write_json
 from meshsar_builder.pipeline.recipe import load
 
 DEMO = Path(__file__).resolve().parents[2] / "manifests" / "demo.toml"
-PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss", "speckle", "inference")
+PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss", "speckle", "inference", "radar-throughput")
 # The radar-loss, speckle and inference parts' build (format 2, with a loss grid): MESHSAR_BENCH_DATA, else build/demo.
 RADAR_LOSS_DATA = "build/demo"
 
@@ -85,6 +85,12 @@ def bench_radar(out: Path) -> dict:
 
     surface = demo_subject(0)  # remeshed at half the demo's edge: the scaling row's finest mesh
     return run(out, *demo_mesh(), fine=remesh(surface.verts, surface.faces, RemeshParams(edge_mm=1.25)))
+
+
+def bench_radar_throughput(out: Path, device: str = "cpu") -> dict:
+    from meshsar_builder.bench.throughput import run
+
+    return run(out, *demo_mesh(), device=device)
 
 
 def _timed(fn, *args):
@@ -358,9 +364,11 @@ def bench_inference(out: Path) -> dict:
 
 
 def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
-    """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision)."""
+    """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision) and where
+    the radar-throughput part renders."""
     out.mkdir(parents=True, exist_ok=True)
     benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline,
                "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss,
-               "speckle": bench_speckle, "inference": bench_inference}
+               "speckle": bench_speckle, "inference": bench_inference,
+               "radar-throughput": lambda folder: bench_radar_throughput(folder, device)}
     return {part: benches[part](out) for part in parts}
