@@ -316,11 +316,22 @@ def test_bench_gpu_row_is_skipped_with_a_reason_or_filled(monkeypatch):
         for name, value in (("get_device_name", "cpu"), ("reset_peak_memory_stats", None),
                             ("max_memory_allocated", 0)):
             monkeypatch.setattr(torch.cuda, name, lambda *args, value=value: value)
+    cpu_views[0]["seconds_echo_direct_scaled"] = 100.0  # as measure() records the direct sum's time
     row = BR.gpu_row(verts, faces, radar, images, cpu_views)
     assert [v["view"] for v in row["views"]] == list(radar.views)
     for view in row["views"]:
         assert view["echo_relative_error"] < TOLERANCE and view["volume_relative_error"] < TOLERANCE
         assert view["seconds_view"] > view["seconds_echo"] > 0 and view["speedup_view"] > 0
+        assert 0 <= view["intensity_max_difference"] < 1e-3 and 0.9 <= view["depth_within_one_slice"] <= 1
+    first, second = row["views"]
+    assert first["speedup_echo_direct"] == pytest.approx(100.0 / first["seconds_echo"])
+    assert second["speedup_echo_direct"] is None
+    targets = row["targets"]
+    assert targets["speedup_echo_direct"]["measured_min"] == first["speedup_echo_direct"]
+    worst = max(first["intensity_max_difference"], second["intensity_max_difference"])
+    assert targets["intensity_max_difference"] == {"target": 1e-5, "measured_max": worst, "met": worst <= 1e-5}
+    assert targets["depth_within_one_slice"]["met"] == (
+        min(first["depth_within_one_slice"], second["depth_within_one_slice"]) >= 0.99)
 
 
 @pytest.mark.slow  # starts a process cluster: ~10-20 s on 2 cores

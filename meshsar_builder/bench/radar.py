@@ -30,6 +30,11 @@ TARGET_ERROR = 1e-4
 TARGET_VIEW_SECONDS = 0.5  # a whole view, the diffuse part included (issue 32 item 2)
 TARGET_PO_OVER_CENTROID = 2.5  # whole view, the facet integral against the centroid model
 TARGET_DIFFUSE_SECONDS = 0.15  # the diffuse part's echo per view (issue 29 item 5)
+# Issue 32's GPU budgets: the echo against the same direct sum on one core; the float32 channels
+# against the CPU's before storage.
+GPU_TARGET_SPEEDUP = 50.0
+GPU_TARGET_INTENSITY = 1e-5
+GPU_TARGET_DEPTH = 0.99
 DIRECT_ANTENNAS = 48  # the direct sum is timed on this many antennas and scaled to the aperture
 REPEATS = 3
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
@@ -104,10 +109,15 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
     """The GPU row: per view, the echo and imaging on CUDA (radar/gpu.py) against one CPU core in this run.
 
     cpu_views : per view of radar.views, view_seconds' dict of the CPU path (its seconds,
-    `signal`, `volume`, `seen`, `vis`). Visibility stays on the CPU, so its seconds are the
-    CPU's. Timings are best of REPEATS after a warm-up call (CUDA context, cuFFT plans),
-    which is timed on its own; results come back to the host, so each timing includes the
-    transfers and waits for the device. Skipped, with the reason, without torch or CUDA.
+    `signal`, `volume`, `seen`, `vis`, and `seconds_echo_direct_scaled` where measure timed
+    the direct sum). Visibility stays on the CPU, so its seconds are the CPU's. Timings are
+    best of REPEATS after a warm-up call (the kernel's compile, the CUDA context, cuFFT
+    plans), which is timed on its own; results come back to the host, so each timing
+    includes the transfers and waits for the device. `targets` judges issue 32's GPU
+    budgets: the echo against the same direct sum on one core (GPU_TARGET_SPEEDUP), and the
+    view's float32 channels against the CPU's before storage (intensity within
+    GPU_TARGET_INTENSITY, depth within one range slice on GPU_TARGET_DEPTH of the pixels).
+    Skipped, with the reason, without torch or CUDA.
     """
     try:
         import torch
@@ -117,8 +127,11 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
         return {"skipped": "no CUDA device: torch.cuda.is_available() is false"}
     import meshsar_builder.radar.gpu as RG
     import meshsar_builder.radar.params as RP
+    from meshsar_builder.radar.imaging import range_slices, volume_images
 
     freqs, (x_mm, y_mm) = RP.frequencies(radar), RP.aperture_axes(radar)
+    d_mm = range_slices(radar.z0_mm, images.fov_mm, freqs)
+    one_slice = (d_mm[1] - d_mm[0]) / (images.fov_mm / 2)  # in the depth channel's units
     shape = (*radar.aperture, radar.n_samples)
     start = time.perf_counter()
     first = cpu_views[0]
@@ -135,16 +148,43 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
         signal = signal.reshape(shape)
         t_img, volume = _best(lambda: RG.view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images, device="cuda"))
         seconds_view = cpu["seconds_visibility"] + t_echo + 2 * t_img
+        mine, theirs = (dict(zip(images.channels, volume_images(v, freqs, radar.z0_mm, images)))
+                        for v in (volume, cpu["volume"]))
         views.append({
             "view": view, "seconds_echo": t_echo, "seconds_imaging": 2 * t_img, "seconds_view": seconds_view,
             "cpu_seconds_view": cpu["seconds_view"], "speedup_view": cpu["seconds_view"] / seconds_view,
             "speedup_echo": cpu["seconds_echo"] / t_echo,
+            "speedup_echo_direct": cpu["seconds_echo_direct_scaled"] / t_echo
+            if "seconds_echo_direct_scaled" in cpu else None,
             "echo_relative_error": float(np.linalg.norm(signal - cpu["signal"]) / np.linalg.norm(cpu["signal"])),
             "volume_relative_error": float(np.linalg.norm(volume - cpu["volume"]) / np.linalg.norm(cpu["volume"])),
+            **({"intensity_max_difference": float(np.abs(mine["intensity"] - theirs["intensity"]).max()),
+                "intensity_within_target": float(np.mean(np.abs(mine["intensity"] - theirs["intensity"])
+                                                         <= GPU_TARGET_INTENSITY))} if "intensity" in mine else {}),
+            **({"depth_within_one_slice": float(np.mean(np.abs(mine["depth"] - theirs["depth"]) <= one_slice))}
+               if "depth" in mine else {}),
         })
     return {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "facet": radar.facet,
             "warm_up_seconds": warm_up, "peak_memory_bytes": int(torch.cuda.max_memory_allocated()),
-            "imaging_chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views}
+            "imaging_chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views, "targets": gpu_targets(views)}
+
+
+def gpu_targets(views: list[dict]) -> dict:
+    """Issue 32's GPU budgets over the gpu row's views, each with a `met` flag (left out where not measured)."""
+    targets = {}
+    speedups = [v["speedup_echo_direct"] for v in views if v.get("speedup_echo_direct") is not None]
+    if speedups:
+        targets["speedup_echo_direct"] = {"target": GPU_TARGET_SPEEDUP, "measured_min": min(speedups),
+                                          "met": min(speedups) >= GPU_TARGET_SPEEDUP}
+    if all("intensity_max_difference" in v for v in views):
+        worst = max(v["intensity_max_difference"] for v in views)
+        targets["intensity_max_difference"] = {"target": GPU_TARGET_INTENSITY, "measured_max": worst,
+                                               "met": worst <= GPU_TARGET_INTENSITY}
+    if all("depth_within_one_slice" in v for v in views):
+        least = min(v["depth_within_one_slice"] for v in views)
+        targets["depth_within_one_slice"] = {"target": GPU_TARGET_DEPTH, "measured_min": least,
+                                             "met": least >= GPU_TARGET_DEPTH}
+    return targets
 
 
 # Floating-point operations per antenna-scatterer pair of the production kernel
@@ -410,6 +450,7 @@ def measure(verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.nda
         error = float(np.linalg.norm(production - direct) / np.linalg.norm(direct))
         t_series, _ = _best(lambda: RE.echo(tri, vis[seen], positions, freqs, radar, method="chebyshev"))
         direct_scaled = t_direct * len(positions) / len(subset)
+        cpu_views[-1]["seconds_echo_direct_scaled"] = direct_scaled  # the GPU row's same-model reference
         # Embree alone: the same rays as the visibility pass, without the numpy around them.
         probes = RP.probe_points(radar, view)
         centres = RV.facet_geometry(verts, faces)[0]
