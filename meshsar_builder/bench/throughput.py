@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from meshsar_builder.bench.radar import THREAD_VARIABLES
 from meshsar_builder.pipeline.io import write_json
 
 SAMPLES = 4
-THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
 
 
 def worker_counts(cores: int) -> list[int]:
