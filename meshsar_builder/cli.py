@@ -80,8 +80,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
             from meshsar_builder.bench.trainer import result_name
 
             print(f"{part}: {Path(args.out) / result_name(args.device)}")
-        elif part == "radar-throughput" and args.device != "cpu":
-            print(f"{part}: {Path(args.out) / 'radar_throughput-cuda.json'}")
+        elif part == "radar-throughput":
+            from meshsar_builder.bench.throughput import result_name
+
+            print(f"{part}: {Path(args.out) / result_name(args.device)}")
         else:
             print(f"{part}: {Path(args.out) / (part.replace('-', '_') + '.json')}")  # radar-loss -> radar_loss.json
     return 0

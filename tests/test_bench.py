@@ -203,3 +203,12 @@ def test_radar_throughput_on_cuda_is_refused_before_any_worker_starts(tmp_path):
     with pytest.raises(MeshsarError, match="CUDA is not available"):
         run(tmp_path, np.zeros((3, 3)), np.array([[0, 1, 2]]), device="cuda")
     assert not (tmp_path / "radar_throughput-cuda.json").exists()
+
+
+def test_bench_cli_names_the_throughput_file_of_its_device(tmp_path, monkeypatch, capsys):
+    import meshsar_builder.bench.suite as suite
+
+    monkeypatch.setattr(suite, "bench_radar_throughput", lambda out, device: {"device": device})
+    for device, name in (("cpu", "radar_throughput.json"), ("cuda", "radar_throughput-cuda.json")):
+        assert main(["bench", "radar-throughput", "--device", device, "--out", str(tmp_path)]) == 0
+        assert capsys.readouterr().out.strip() == f"radar-throughput: {tmp_path / name}"

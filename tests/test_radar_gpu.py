@@ -112,6 +112,12 @@ np.save(sys.argv[2], cuda_sum.direct_sum(case["centres"], case["normals"], case[
 """
 
 
+def in_simulator(script: str, *args: str) -> str:
+    """Run a Python script in a process where numba's CUDA simulator stands in for a GPU; its stdout."""
+    return subprocess.run([sys.executable, "-c", script, *args], env={**os.environ, "NUMBA_ENABLE_CUDASIM": "1"},
+                          check=True, capture_output=True, text=True).stdout
+
+
 @pytest.mark.parametrize("facet, rvp, reflectivity", [("po", True, "lobe"), ("point", False, "po")])
 def test_the_cuda_kernel_equals_the_torch_direct_sum_in_numbas_simulator(tmp_path, rvp, reflectivity, facet):
     """The GPU's kernel, run on the CPU by numba's CUDA simulator (CI has no GPU), against echo_chunk's sum.
@@ -148,8 +154,7 @@ def test_the_cuda_kernel_equals_the_torch_direct_sum_in_numbas_simulator(tmp_pat
     assert len(freqs) > WARPS * GROUP and len(freqs) % GROUP and len(tri) > 4 * WARP
     np.savez(tmp_path / "case.npz", centres=centres, normals=normals, weights=weights, positions=positions,
              freqs=freqs, edges=edges if facet == "po" else np.zeros(0), rvp=rvp, reflectivity=reflectivity)
-    subprocess.run([sys.executable, "-c", SIMULATOR, str(tmp_path / "case.npz"), str(tmp_path / "got.npy")],
-                   env={**os.environ, "NUMBA_ENABLE_CUDASIM": "1"}, check=True)
+    in_simulator(SIMULATOR, str(tmp_path / "case.npz"), str(tmp_path / "got.npy"))
     got = np.load(tmp_path / "got.npy")
     expected = RG._direct_sum(centres, normals, weights, edges if facet == "po" else None, positions, freqs, radar,
                               "cpu")
@@ -172,17 +177,16 @@ class Broken:
             raise AttributeError("module 'numpy' has no attribute 'row_stack'")
         return launch
 
-cuda_sum._compiled["kernel"] = Broken()
+cuda_sum._kernel = lambda: Broken()
 try:
     cuda_sum.direct_sum(np.zeros((1, 3)), np.array([[0, 0, 1.0]]), np.ones(1), None, np.array([[0, 0, 200.0]]),
                         np.array([7.7e10, 7.8e10]), RadarParams())
 except MeshsarError as error:
     print(error)
 """
-    run = subprocess.run([sys.executable, "-c", script], env={**os.environ, "NUMBA_ENABLE_CUDASIM": "1"},
-                         check=True, capture_output=True, text=True)
-    assert "CUDA echo kernel failed to compile or run on cuda:0: AttributeError" in run.stdout
-    assert "row_stack" in run.stdout and "numba " in run.stdout and "numpy " in run.stdout
+    out = in_simulator(script)
+    assert "CUDA echo kernel failed to compile or run on cuda:0: AttributeError" in out
+    assert "row_stack" in out and "numba " in out and "numpy " in out
 
 
 def test_the_kernel_takes_evenly_spaced_frequencies_only():

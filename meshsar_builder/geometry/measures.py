@@ -19,6 +19,11 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(edges, axis=0)
 
 
+def edge_lengths(verts: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(e,) lengths of edges (e, 2) between verts (n, 3)."""
+    return np.linalg.norm(verts[edges[:, 0]] - verts[edges[:, 1]], axis=1)
+
+
 def flipped_faces(before_verts: np.ndarray, after_verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Faces turned over between two vertex sets of one closed mesh.
 

@@ -55,7 +55,7 @@ from scipy.spatial import cKDTree
 
 from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.landmarks import face_labels
-from meshsar_builder.geometry.measures import flipped_faces, unique_edges
+from meshsar_builder.geometry.measures import edge_lengths, flipped_faces, unique_edges
 from meshsar_builder.geometry.meshing import closest_among, transfer_labels
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import simplify
@@ -275,7 +275,7 @@ class _AmbergSystem:
         self.n = n
         self.hom = np.c_[verts, np.ones(n)]  # (n, 4): [v_i 1]
         edges = unique_edges(faces)
-        lengths = np.linalg.norm(verts[edges[:, 0]] - verts[edges[:, 1]], axis=1)
+        lengths = edge_lengths(verts, edges)
         # (n,) mean length of the edges at each vertex
         self.spacing = np.bincount(edges.ravel(), np.repeat(lengths, 2), minlength=n) / np.bincount(
             edges.ravel(), minlength=n)

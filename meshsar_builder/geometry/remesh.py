@@ -14,7 +14,7 @@ import pymeshlab
 import trimesh
 
 from meshsar_builder.geometry.intersections import self_intersecting_faces
-from meshsar_builder.geometry.measures import unique_edges
+from meshsar_builder.geometry.measures import edge_lengths, unique_edges
 from meshsar_builder.pipeline.errors import MeshError
 
 # pymeshlab renamed AbsoluteValue to PureValue (2022.2); both mean "in mesh units" (mm here).
@@ -229,8 +229,7 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
         meshset.apply_coord_taubin_smoothing(
             lambda_=params.taubin_lambda, mu=params.taubin_mu, stepsmoothnum=params.taubin_steps
         )
-    edges = unique_edges(np.asarray(faces))
-    lengths = np.linalg.norm(np.asarray(verts)[edges[:, 0]] - np.asarray(verts)[edges[:, 1]], axis=1)
+    lengths = edge_lengths(np.asarray(verts), unique_edges(np.asarray(faces)))
     if np.median(lengths) < params.edge_mm / 2 and lengths.max() < params.edge_mm:  # dense everywhere: marching cubes
         _coarsen_onto(meshset, params)
     else:

@@ -26,12 +26,13 @@ the CPU, which is how CI tests it (tests/test_radar_gpu.py).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 
 from meshsar_builder.pipeline.errors import MeshsarError
-from meshsar_builder.radar.differentiable import SERIES_GAP, SERIES_TERMS
+from meshsar_builder.radar.differentiable import SERIES_GAP, SERIES_IM, SERIES_RE, SERIES_TERMS
 from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, RadarParams
 
 try:
@@ -47,14 +48,12 @@ WARP = 32
 WARPS = 4  # per block: each takes every WARPS-th group of frequencies
 GROUP = 16  # frequencies a thread carries by phasor recurrence: 2 x GROUP float64 accumulators in registers
 DELAY_S_PER_MM = 2e-3 / SPEED_OF_LIGHT_M_PER_S  # round trip
-# (-1)^(p/2) 2 / (p + 2)! and (-1)^(p/2) 2 / (p + 3)! for even p: the series' real and imaginary coefficients
-SERIES_RE = np.array([(-1) ** (p // 2) * 2 / math.factorial(p + 2) for p in range(0, SERIES_TERMS, 2)])
-SERIES_IM = np.array([(-1) ** (p // 2) * 2 / math.factorial(p + 3) for p in range(0, SERIES_TERMS, 2)])
 HALF_TERMS = len(SERIES_RE)
 
 
+@functools.cache
 def _kernel():
-    """The compiled kernel, made on first use: numba.cuda is imported only where a GPU echo is asked for."""
+    """The kernel, made once per process on first use (numba compiles it at its first launch)."""
 
     @cuda.jit(device=True)
     def phasor(angle):
@@ -181,8 +180,6 @@ def uniform(freqs: np.ndarray) -> bool:
     return len(steps) == 0 or bool(np.all(np.abs(steps - steps[0]) <= 1e-9 * abs(steps[0])) and steps[0] != 0)
 
 
-_compiled = {}
-
 
 def direct_sum(scatterers: np.ndarray, normals: np.ndarray, weights: np.ndarray, edges: np.ndarray | None,
                positions: np.ndarray, freqs: np.ndarray, radar: RadarParams, index: int = 0) -> np.ndarray:
@@ -197,9 +194,7 @@ def direct_sum(scatterers: np.ndarray, normals: np.ndarray, weights: np.ndarray,
     freqs = np.asarray(freqs, dtype=np.float64)
     if not uniform(freqs):
         raise ValueError("freqs: the CUDA echo needs evenly spaced frequencies")
-    if "kernel" not in _compiled:
-        _compiled["kernel"] = _kernel()
-    kernel = _compiled["kernel"]
+    kernel = _kernel()
     weights = np.asarray(weights)
     to_k = 2e-3 * math.pi / SPEED_OF_LIGHT_M_PER_S  # Hz to rad/mm
     f0, df = freqs[0], (freqs[-1] - freqs[0]) / max(len(freqs) - 1, 1)

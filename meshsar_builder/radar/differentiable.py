@@ -30,6 +30,10 @@ TERMS_PER_CHUNK = 1 << 20
 # most a factor 1 / SERIES_GAP of precision to cancellation.
 SERIES_GAP = 1.0
 SERIES_TERMS = 16
+# The series' coefficients in k^2 for even p: (-1)^(p/2) 2 / (p + 2)! (real part, with h_p) and
+# (-1)^(p/2) 2 / (p + 3)! (imaginary part, with h_{p+1}); radar/cuda_sum.py's kernel shares them.
+SERIES_RE = np.array([(-1) ** (p // 2) * 2 / math.factorial(p + 2) for p in range(0, SERIES_TERMS, 2)])
+SERIES_IM = np.array([(-1) ** (p // 2) * 2 / math.factorial(p + 3) for p in range(0, SERIES_TERMS, 2)])
 
 
 def facet_geometry_torch(verts: torch.Tensor, faces: torch.Tensor):
@@ -90,8 +94,8 @@ def facet_phasor(phase: torch.Tensor, beta: torch.Tensor, wavenumber: torch.Tens
     k2 = wavenumber * wavenumber  # Horner in k^2
     series_re, series_im = 0, 0
     for p in range(SERIES_TERMS - 2, -1, -2):
-        series_re = series_re * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 2)) * h[p][:, None]
-        series_im = series_im * k2 + ((-1) ** (p // 2) * 2 / math.factorial(p + 3)) * h[p + 1][:, None]
+        series_re = series_re * k2 + float(SERIES_RE[p // 2]) * h[p][:, None]
+        series_im = series_im * k2 + float(SERIES_IM[p // 2]) * h[p + 1][:, None]
     series_im = series_im * wavenumber  # (P, Ef)
     angle = phase[near] + beta[near].mean(-1, keepdim=True) * wavenumber
     c, s = torch.cos(angle), torch.sin(angle)
