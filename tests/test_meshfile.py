@@ -27,6 +27,18 @@ def test_ply_round_trip_is_exact(tmp_path_factory, n, m, with_labels, data):
     assert v.tobytes() == verts.tobytes() and np.array_equal(f, faces.reshape(-1, 3))
     assert (lab is None) if labels is None else np.array_equal(lab, labels)
     assert [p.name for p in path.parent.iterdir()] == ["mesh.ply"]  # no temporary left
+    # the same bytes as plyfile's own (row by row) writer, so a reader of either kind reads the file
+    from plyfile import PlyData, PlyElement
+
+    vertex = np.empty(n, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")] + [("label", "u1")] * with_labels)
+    vertex["x"], vertex["y"], vertex["z"] = verts.T
+    if with_labels:
+        vertex["label"] = labels
+    face = np.empty(m, dtype=[("vertex_indices", "i4", (3,))])
+    face["vertex_indices"] = faces
+    reference = path.parent / "reference.ply"
+    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=False).write(str(reference))
+    assert path.read_bytes() == reference.read_bytes()
 
 
 def test_quads_and_truncated_files_are_named(tmp_path):

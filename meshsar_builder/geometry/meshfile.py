@@ -22,8 +22,15 @@ def write_ply(path: str | Path, verts: np.ndarray, faces: np.ndarray, labels: np
     fdata = np.empty(len(faces), dtype=[("vertex_indices", "i4", (3,))])
     fdata["vertex_indices"] = faces
     ply = PlyData([PlyElement.describe(vdata, "vertex"), PlyElement.describe(fdata, "face")], text=False)
-    with atomic_path(path) as tmp:
-        ply.write(str(tmp))
+    # plyfile's header and the bytes it would write, but the faces packed as one array: plyfile writes a list
+    # property row by row (56 ms for a 12,000-face mesh, this 1 ms).
+    count_type, index_type = ply["face"].properties[0].list_dtype(ply.byte_order)
+    packed = np.empty(len(faces), dtype=[("count", count_type), ("indices", index_type, (3,))])
+    packed["count"], packed["indices"] = 3, faces
+    with atomic_path(path) as tmp, open(tmp, "wb") as stream:
+        stream.write(ply.header.encode("ascii") + b"\n")
+        stream.write(vdata.astype(ply["vertex"].dtype(ply.byte_order), copy=False).tobytes())
+        stream.write(packed.tobytes())
 
 
 def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
