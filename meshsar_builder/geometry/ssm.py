@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 import trimesh
 
@@ -286,10 +287,25 @@ def specificity_draws(
         for i in range(count):
             _, verts, n = sample_valid(cut, rng, params)
             redraws += n
-            offsets = training - verts  # (s, n, 3)
-            # einsum: the norms' sums, 4x faster than np.linalg.norm's temporaries
-            distances[j - 1, i] = np.sqrt(np.einsum("svc,svc->sv", offsets, offsets)).mean(axis=1).min()
+            distances[j - 1, i] = nearest_mean_distance(training, verts)
     return distances, redraws
+
+
+@numba.njit(cache=True)
+def nearest_mean_distance(shapes: np.ndarray, verts: np.ndarray) -> float:
+    """The least over shapes (s, n, 3) of the mean vertex-to-vertex distance to verts (n, 3) (mm).
+
+    One pass, no temporaries: the specificity makes one call per draw, and numpy's norms of
+    (s, n, 3) differences took a fifth of a draw's time.
+    """
+    best = np.inf
+    for s in range(shapes.shape[0]):
+        total = 0.0
+        for v in range(shapes.shape[1]):
+            dx, dy, dz = shapes[s, v, 0] - verts[v, 0], shapes[s, v, 1] - verts[v, 1], shapes[s, v, 2] - verts[v, 2]
+            total += np.sqrt(dx * dx + dy * dy + dz * dz)
+        best = min(best, total / shapes.shape[1])
+    return best
 
 
 def model_quality(model: ShapeModel, shapes: np.ndarray, params: SSMParams) -> dict:
