@@ -166,5 +166,5 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 7: the series' sums in a new order (32 lanes, BLAS products) and the scatterers' series cut at 1e-7 on
 # the factorised grids: echoes differ in their last bits, diffuse_power by the series' 1e-10.
 # Version 8: the factorised echo interpolates in single precision (measured 1.6e-7 relative, far below the
-# factorisation's 1e-5): echoes differ in their last bits.
+# factorisation's 1e-5), and the scatterers' series on its grids is cut at 1e-5: echoes differ in their last bits.
 STAGE = Stage(name=NAME, version=8, plan=plan, run=run, resources=resources, check=check)

@@ -48,10 +48,12 @@ from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, Aperture
 FACTORISED_CELL_MM = 30.0
 FACTORISED_GAIN = 2.0
 FACTORISED_TOLERANCE = 1e-4
-# The series' truncation for point scatterers on the grids: far below their factorisation error (1-4e-4, the
-# Lambert kink), and 3 terms fewer than CHEBYSHEV_TOLERANCE (-11 % of the diffuse part's series). Facets keep
-# CHEBYSHEV_TOLERANCE: their corner weights amplify the series' error up to CORNER_GAIN_LIMIT times.
-POINT_SERIES_TOLERANCE = 1e-7
+# The series' truncation for point scatterers on the grids: 10-40x below their factorisation error (1-4e-4, the
+# Lambert kink), and 4 terms fewer than CHEBYSHEV_TOLERANCE at a 26 mm range half-width. On the demo heart's three
+# views the diffuse part's error against its direct sum is the same to 3 digits at 1e-7, 1e-5 and 1e-4, and 1e-5
+# takes 5-10 ms a view less than 1e-7. Facets keep CHEBYSHEV_TOLERANCE: their corner weights amplify the series'
+# error up to CORNER_GAIN_LIMIT times.
+POINT_SERIES_TOLERANCE = 1e-5
 
 
 def _chebyshev_nodes(axis: np.ndarray, count: int) -> np.ndarray:
