@@ -124,6 +124,6 @@ def finish(ctx: Context, results: Results) -> None:
 
 # Version 5: the samples in parts of samples_per_item, side by side (v4: the specificity draws in
 # specificity_items parts).
-# Version 6: specificity distances summed in one numba pass (last-bit changes); the self-intersection test's shared-vertex
-# shortcut and the array-speed PLY writer change no byte.
+# Version 6: specificity distances summed in one numba pass (last-bit changes); the self-intersection test's
+# shared-vertex shortcut and the array-speed PLY writer change no byte.
 STAGE = Stage(name=NAME, version=6, plan=plan, run=run, finish=finish)

@@ -165,3 +165,21 @@ def test_clusters_without_scatterers_add_nothing_of_them(aperture, step_mm):
     diffuse = RE.point_echo(*lit, grid.positions, freqs, lambert(radar), method="chebyshev")
     assert np.isfinite(both).all()
     assert relative_error(both - alone, diffuse) <= 1e-3
+
+
+@pytest.mark.parametrize("tolerance", [1e-4, 1e-5, 1e-7, 1e-10])
+def test_series_orders_of_many_clusters_at_once_are_each_ones_by_the_definition(tolerance):
+    """The clusters' grids take their series orders from one Bessel call over a short range of orders first: each
+    must be the fewest L whose tail sum_{l >= L} eps_l |J_l(w)| over the full range is <= tolerance."""
+    from scipy.special import jv
+
+    from meshsar_builder.radar.series import _series_order
+
+    ws = np.concatenate([[0.0, 1e-3, 0.5], np.random.default_rng(0).uniform(0, 60, 200), [150.0, 400.0]])
+    orders = np.arange(int(ws.max() + 40 * ws.max() ** (1 / 3)) + 128)
+    bounds = np.abs(jv(orders[:, None], ws[None, :])) * np.where(orders[:, None] == 0, 1.0, 2.0)
+    tails = np.cumsum(bounds[::-1], axis=0)[::-1]
+    expected = np.maximum(np.argmax(tails <= tolerance, axis=0), 1)
+    together = _series_order(ws.reshape(-1, 5), tolerance)
+    assert together.shape == (len(ws) // 5, 5) and np.array_equal(together.ravel(), expected)
+    assert [_series_order(float(w), tolerance) for w in ws[:20]] == expected[:20].tolist()

@@ -37,7 +37,8 @@ def test_ply_round_trip_is_exact(tmp_path_factory, n, m, with_labels, data):
     face = np.empty(m, dtype=[("vertex_indices", "i4", (3,))])
     face["vertex_indices"] = faces
     reference = path.parent / "reference.ply"
-    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")], text=False).write(str(reference))
+    elements = [PlyElement.describe(vertex, "vertex"), PlyElement.describe(face, "face")]
+    PlyData(elements, text=False).write(str(reference))
     assert path.read_bytes() == reference.read_bytes()
 
 
