@@ -88,4 +88,5 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
 # Version 7: label agreement and landmarks only for structures that form a region (register v12);
 # version 8: flipped faces judged against their neighbourhood (register v13); version 9: a
 # folding step keeps its fold-free part (register v14).
-STAGE = Stage(name=NAME, version=9, plan=plan, run=run)
+# Version 10: register v15's preconditioner.
+STAGE = Stage(name=NAME, version=10, plan=plan, run=run)
