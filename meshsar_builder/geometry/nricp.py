@@ -225,8 +225,8 @@ def _preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
     preconditions the conjugate gradients, which run in double and stop at a relative residual of 1e-4, 3 orders
     above its rounding (two demo whole-heart fits: 15-19 % faster, the same figures). Its supernodes are relaxed
     to 80 columns in panels of 20 (SuperLU's defaults: 5, 10), for larger dense blocks in a factor this full (16 M
-    nonzeros from 0.43 M at 4,845 vertices): demo frame fits 2.31 -> 2.11 s, 10.4 -> 9.7 s with 7 fold repeats,
-    the same figures.
+    nonzeros from 0.43 M at 4,845 vertices): a demo frame fit 2.30-2.36 -> 2.11-2.14 s, the same figures; no gain
+    on one with 7 fold repeats (10.3-10.4 s against 9.7-10.6).
     """
     factor = splu(matrix[order][:, order].tocsc().astype(np.float32), permc_spec="NATURAL", diag_pivot_thresh=0.0,
                   relax=80, panel_size=20, options={"SymmetricMode": True})
