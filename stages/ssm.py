@@ -126,4 +126,4 @@ def finish(ctx: Context, results: Results) -> None:
 # specificity_items parts).
 # Version 6: specificity distances summed in one numba pass (last-bit changes); the self-intersection test's
 # shared-vertex shortcut and the array-speed PLY writer change no byte.
-STAGE = Stage(name=NAME, version=6, plan=plan, run=run, finish=finish)
+STAGE = Stage(name=NAME, version=6, plan=plan, run=run, finish=finish, after=("register",))

@@ -283,3 +283,82 @@ def test_a_stage_runs_pass_after_pass_while_again_says_so_and_resumes(tmp_path):
     log.clear()
     row = run_stage(ctx, stage, Results())
     assert log == [0, 1, 2] and (row["ran"], row["skipped"]) == (0, 6)
+
+
+def _timed_item(ctx, item):
+    """A toy item: sleeps item.params["seconds"] (or fails as a full disk), writes its output, returns its times."""
+    import errno
+
+    start = time.time()
+    if item.params.get("disk_full"):
+        raise OSError(errno.ENOSPC, "No space left on device", item.id)
+    time.sleep(item.params["seconds"])
+    (ctx.stage_dir(item.id.split("-")[0]) / item.outputs[0]).write_text("x")
+    return {"start": start, "end": time.time()}
+
+
+def _toy_plan(name: str, seconds: list[float], disk_full: bool, ctx, results):
+    from meshsar_builder.pipeline.runner import Item
+
+    return [Item(f"{name}-{i}", (f"{name}-{i}.txt",), params={"seconds": s, "disk_full": disk_full})
+            for i, s in enumerate(seconds)]
+
+
+def _toy_stage(name: str, seconds: list[float], after=None, disk_full: bool = False):
+    """A stage of items that sleep `seconds` each (workers get the stage pickled: no local functions)."""
+    import functools
+
+    from meshsar_builder.pipeline.runner import Stage
+
+    return Stage(name=name, version=1, plan=functools.partial(_toy_plan, name, seconds, disk_full), run=_timed_item,
+                 after=after)
+
+
+def _stage_times(results, name: str) -> tuple[float, float]:
+    recs = results.of(name).values()
+    return min(r["start"] for r in recs), max(r["end"] for r in recs)
+
+
+def test_stages_that_do_not_read_each_other_share_the_workers(tmp_path):
+    """b and c read only a: c's short items run beside b's long one; d (after all) waits for both;
+    the summary keeps pipeline order though c finished first."""
+    from meshsar_builder.pipeline.runner import Context, LocalPool, Results, run_stages
+
+    stages = {"a": _toy_stage("a", [0.0]), "b": _toy_stage("b", [4.0], after=("a",)),
+              "c": _toy_stage("c", [0.2, 0.2, 0.2], after=("a",)), "d": _toy_stage("d", [0.0])}
+    results, pool = Results(), LocalPool(2)
+    try:
+        run_stages(Context(out=tmp_path, recipe=None), stages, results, pool)
+    finally:
+        pool.close()
+    (a_start, a_end), (b_start, b_end), (c_start, c_end), (d_start, _) = (
+        _stage_times(results, name) for name in "abcd")
+    assert a_end <= min(b_start, c_start)
+    assert c_end < b_end, "c waited for b: the stages ran one after the other"
+    assert d_start >= max(b_end, c_end)
+    assert [row["stage"] for row in results.summary] == ["a", "b", "c", "d"] and results.failures == []
+    # One stage at a time without a pool (items in this process), with the same records.
+    serial = Results()
+    run_stages(Context(out=tmp_path / "serial", recipe=None), stages, serial)
+    assert _stage_times(serial, "c")[0] >= _stage_times(serial, "b")[1]
+
+
+def test_a_stage_that_stops_the_build_stops_the_stages_beside_it(tmp_path):
+    """b finds the disk full while c has many items to go: the build raises b's error, c's pending
+    items are cancelled, and no stage's thread is left running."""
+    import threading
+
+    from meshsar_builder.pipeline.errors import MeshsarError
+    from meshsar_builder.pipeline.runner import Context, LocalPool, Results, run_stages
+
+    stages = {"b": _toy_stage("b", [1.0], disk_full=True, after=()), "c": _toy_stage("c", [0.5] * 20, after=())}
+    pool = LocalPool(2)
+    try:
+        with pytest.raises(MeshsarError, match=r"cannot write outputs \(No space left on device, at b/b-0\)"):
+            run_stages(Context(out=tmp_path, recipe=None), stages, Results(), pool)
+    finally:
+        pool.close()
+    assert not [t for t in threading.enumerate() if t.name.startswith("stage-")]
+    assert len(list((tmp_path / "c").glob("c-*.json"))) < 20
+    with pytest.raises(RuntimeError, match="names a stage that does not run before it"):
+        run_stages(Context(out=tmp_path, recipe=None), {"b": _toy_stage("b", [0.0], after=("b",))}, Results(), pool)

@@ -27,7 +27,9 @@ import concurrent.futures as cf
 import errno
 import multiprocessing
 import os
+import queue
 import sys
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -54,6 +56,9 @@ from meshsar_builder.pipeline.recipe import Recipe
 # A full disk, a read-only or unwritable output folder, an exhausted quota.
 UNWRITABLE = {errno.ENOSPC, errno.EROFS, errno.EACCES, errno.EDQUOT}
 
+# How long a stopping build waits for each stage still running in a thread of its own (run_stages) to let go:
+# its pool is closed by then, so a stage is at most in its own main-process work (a register template).
+STOP_SECONDS = 60.0
 STAGE_ORDER = ("sources", "meshes", "remesh", "track", "register", "ssm", "radar", "shards", "card")
 
 
@@ -101,6 +106,9 @@ class Stage:
     # Runs after each pass (items, then finish): True plans and runs the stage once more.
     # results.of(stage) then holds the last pass's records, results.passes[stage] the count.
     again: Callable[[Context, "Results"], bool] | None = None
+    # The stages whose records or files this stage reads; None: every stage before it in STAGE_ORDER.
+    # With a pool, a stage starts once these have finished, beside any other stage that may run then.
+    after: tuple[str, ...] | None = None
 
 
 @dataclass
@@ -230,7 +238,7 @@ class LocalPool:
     def wait(self, futures: set) -> tuple[set, set]:
         return cf.wait(futures, return_when=cf.FIRST_COMPLETED)
 
-    def close(self) -> None:
+    def close(self) -> None:  # again after a stop (run_stages): a no-op
         self.executor.shutdown(cancel_futures=True)
 
 
@@ -421,9 +429,61 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bo
     return row
 
 
+def run_stages(ctx: Context, stages: dict[str, Stage], results: Results, pool=None, force: tuple[str, ...] = ()) -> None:
+    """Run `stages` (name -> Stage, in pipeline order), each once the stages it reads (Stage.after) have finished.
+
+    With a pool, stages that do not read each other run side by side: each in a thread of this
+    process that plans it and hands its items to the shared pool, so workers do not idle through
+    a stage's tail (the track stage's few long chains beside the register stage's rounds). Without
+    one, items run in this process, one stage after another. Either way the outputs are the same
+    bytes, and the summary and the failures list the stages in pipeline order.
+    """
+    names = list(stages)
+    if pool is None:
+        for name in names:
+            run_stage(ctx, stages[name], results, None, force=name in force)
+        return
+    needs = {}
+    for i, name in enumerate(names):
+        after = stages[name].after
+        if set(after or ()) & set(names[i:]):  # it would wait for itself or a stage that waits for it
+            raise RuntimeError(f"stage {name}: Stage.after {after} names a stage that does not run before it")
+        needs[name] = set(names[:i]) if after is None else set(after) & set(names[:i])
+    finished: queue.Queue = queue.Queue()
+
+    def run(name: str) -> None:
+        try:
+            run_stage(ctx, stages[name], results, pool, force=name in force)
+            finished.put((name, None))
+        except BaseException as e:  # to the main thread, which stops the build
+            finished.put((name, e))
+
+    threads: dict[str, threading.Thread] = {}
+    done: set[str] = set()
+    try:
+        while len(done) < len(names):
+            for name in names:
+                if name not in threads and needs[name] <= done:
+                    threads[name] = threading.Thread(target=run, args=(name,), name=f"stage-{name}", daemon=True)
+                    threads[name].start()
+            name, error = finished.get()
+            if error is not None:
+                raise error
+            done.add(name)
+    except BaseException:
+        pool.close()  # pending items are cancelled, so the other stages' threads end at their next wait
+        for thread in threads.values():
+            thread.join(timeout=STOP_SECONDS)
+        raise
+    finally:
+        order = {name: i for i, name in enumerate(names)}
+        results.summary.sort(key=lambda row: order[row["stage"]])
+        results.failures.sort(key=lambda f: order.get(f["stage"], len(order)))  # stable: items keep their order
+
+
 def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None, force: tuple[str, ...] = (),
           scheduler: str | None = None, break_lock: bool = False, command: str | None = None) -> Results:
-    """Run the registered stages in order up to `until`; write failures.json and the recipe copy.
+    """Run the registered stages up to `until` (run_stages); write failures.json and the recipe copy.
 
     Items run in this process (workers=1), on `workers` local processes, or on a
     Dask cluster (`scheduler`), with the same outputs byte for byte.
@@ -452,8 +512,7 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
         try:
             for stage in stages.values():  # every stage that will run, before the first runs
                 check_stage(ctx, stage, pool)
-            for name, stage in stages.items():
-                run_stage(ctx, stage, results, pool, force=name in force)
+            run_stages(ctx, stages, results, pool, force)
         finally:
             if pool is not None:
                 pool.close()
