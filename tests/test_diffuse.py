@@ -154,7 +154,8 @@ def test_diffuse_power_is_the_diffuse_echo_on_the_stored_echo_grid():
                          method="direct").reshape(12, 10, 24)
     kept = full[np.ix_(*RP.grid_indices(radar, radar.echo_decimation))]
     assert kept.size == 4 * 5 * 6
-    np.testing.assert_allclose(on["views"][0]["diffuse_power"], np.mean(np.abs(kept) ** 2), rtol=1e-6)
+    # interpolated there from the factorised echo's clusters: within twice its diffuse part's budget (1-4e-4)
+    np.testing.assert_allclose(on["views"][0]["diffuse_power"], np.mean(np.abs(kept) ** 2), rtol=1e-3)
 
 
 # ------------------------------------------------------------------ speckle statistics

@@ -141,6 +141,38 @@ def test_diffuse_part_shares_the_clusters_within_its_budget(mesh_name, view):
     assert relative_error(both - diffuse, specular) <= 1e-3 * np.linalg.norm(diffuse) / np.linalg.norm(specular) + 1e-4
 
 
+@pytest.mark.parametrize("mesh_name, view", [("torus", "left"), ("capsule", "superior")])
+def test_diffuse_part_alone_on_a_sub_grid(mesh_name, view):
+    """diffuse_on: the whole echo keeps its bytes; the diffuse part alone on a sub-grid (every 3rd and 5th antenna
+    and every 2nd frequency, offset) is the full grid's own diffuse part there to float32's rounding, and within
+    its budget of the series; summed without clusters, it is the series' bytes."""
+    from meshsar_builder.radar.diffuse import draw_scatterers, lambert, place, seen_by
+
+    radar = RP.RadarParams()
+    mesh = MESHES[mesh_name]()
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
+    seen = vis > 0
+    scatterers = draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(4))
+    diffuse = (*seen_by(*place(verts, faces, scatterers, radar), scatterers.face, vis), lambert(radar))
+    grid, freqs = RP.aperture(radar, view), RP.frequencies(radar)
+    tri = verts[faces][seen]
+    sub = (np.arange(1, 80, 3), np.arange(2, 80, 5), np.arange(1, 64, 2))
+    whole = RE.echo(tri, vis[seen], grid, freqs, radar, diffuse=diffuse)
+    again, alone = RE.echo(tri, vis[seen], grid, freqs, radar, diffuse=diffuse, diffuse_on=sub)
+    assert again.tobytes() == whole.tobytes() and alone.shape == (27 * 16, 32)
+    _, everywhere = RE.echo(tri, vis[seen], grid, freqs, radar, diffuse=diffuse,
+                            diffuse_on=(np.arange(80), np.arange(80), np.arange(64)))
+    assert relative_error(alone, everywhere.reshape(80, 80, 64)[np.ix_(*sub)].reshape(alone.shape)) <= 1e-5
+    there = RP.Aperture(grid.frame, grid.z0_mm, np.asarray(grid.x_mm)[sub[0]], np.asarray(grid.y_mm)[sub[1]])
+    series = RE.point_echo(*diffuse[:3], there.positions, freqs[sub[2]], diffuse[3], method="chebyshev")
+    assert relative_error(alone, series) <= 1e-3
+    _, summed = RE.echo(tri, vis[seen], grid, freqs, radar, method="chebyshev", diffuse=diffuse, diffuse_on=sub)
+    assert summed.tobytes() == series.tobytes()
+    with pytest.raises(ValueError, match="no diffuse part"):
+        RE.echo(tri, vis[seen], grid, freqs, radar, diffuse_on=sub)
+
+
 @pytest.mark.parametrize("aperture, step_mm", [((80, 80), 2.0), ((24, 24), 6.0)])
 def test_clusters_without_scatterers_add_nothing_of_them(aperture, step_mm):
     """Scatterers on one side of a torus only: the clusters (and, on the small aperture, the facets summed on

@@ -71,7 +71,7 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
     """Best-of-REPEATS seconds of one view as render_sample does it: visibility, echo, diffuse echo, imaging (signal and noise).
 
     scatterers : radar.diffuse.Scatterers on this mesh, or None for no diffuse part, whose
-    seconds are those it adds to the echo call. `signal` is the specular echo alone (what
+    seconds are those it adds to the echo call (its power's sub-grid included). `signal` is the specular echo alone (what
     the accuracy and GPU rows compare).
     """
     import meshsar_builder.radar.diffuse as RD
@@ -86,16 +86,13 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
     positions = RP.aperture(radar, view)  # as render_sample passes it: the grid, which the echo factorises on
     t_echo, signal = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar))
     t_diffuse, lit_count = 0.0, 0
-    if scatterers is not None:  # as render_sample adds it: in the same call, sharing the clusters
-        lit = RD.seen_by(*RD.place(verts, faces, scatterers, radar), scatterers.face, vis)
+    if scatterers is not None:  # as render_sample adds it: in the same call, sharing the clusters, and alone
+        lit = RD.seen_by(*RD.place(verts, faces, scatterers, radar), scatterers.face, vis)  # on the echo grid
         lit_count = len(lit[2])
         t_both, _ = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar,
-                                          diffuse=(*lit, RD.lambert(radar))))
-        # and its power on the stored echo grid, summed on its own (render_sample's diffuse_power)
-        on_grid = RP.sub_aperture(radar, view, radar.echo_decimation)
-        kept = freqs[RP.grid_indices(radar, radar.echo_decimation)[2]]
-        t_power, _ = _best(lambda: RE.point_echo(*lit, on_grid, kept, RD.lambert(radar)))
-        t_diffuse = max(t_both - t_echo, 0.0) + t_power
+                                          diffuse=(*lit, RD.lambert(radar)),
+                                          diffuse_on=RP.grid_indices(radar, radar.echo_decimation)))
+        t_diffuse = max(t_both - t_echo, 0.0)
     signal = signal.reshape(*radar.aperture, radar.n_samples)
     t_img, volume = _best(lambda: view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images))
     return {"visible_facets": int(seen.sum()), "visible_scatterers": lit_count, "seconds_visibility": t_vis,

@@ -23,10 +23,11 @@ from meshsar_builder.radar.series import _echo_chebyshev, _echo_direct
 from meshsar_builder.radar.visibility import triangle_geometry
 
 
-def _summed(parts, positions, freqs, method, radar):
+def _summed(parts, positions, freqs, method, radar, last_on=None):
     """The echo (M, N) complex128 of parts (tuples points, normals, weights, offsets, radar: see
     radar.factorised.echo_factorised) on positions, an (M, 3) array or an Aperture, by method (default
-    radar.echo_method).
+    radar.echo_method). last_on : (ix, iy, i_freq) indices of a sub-grid of an Aperture and of freqs:
+    then (echo, the last part's echo alone on that sub-grid), as echo_factorised returns them.
 
     "factorised" needs an Aperture and the facet integral (a part with offsets); otherwise
     the series runs. For point scatterers alone the factorisation measured no faster
@@ -41,13 +42,23 @@ def _summed(parts, positions, freqs, method, radar):
     freqs = np.asarray(freqs, dtype=np.float64)
     grid = positions if isinstance(positions, Aperture) else None
     positions = np.asarray(positions.positions if grid is not None else positions, dtype=np.float64).reshape(-1, 3)
+    if last_on is not None:
+        if grid is None:
+            raise ValueError("positions: an echo on a sub-grid needs the antennas as an Aperture")
+        ix, iy, i_freq = (np.asarray(index) for index in last_on)
+        sub = Aperture(grid.frame, grid.z0_mm, np.asarray(grid.x_mm)[ix], np.asarray(grid.y_mm)[iy])
+        if not len(parts[-1][0]):  # nothing in the last part: the rest alone, and zeros
+            return (_summed(parts[:-1], grid, freqs, method, radar),
+                    np.zeros((len(ix) * len(iy), len(i_freq)), dtype=np.complex128))
     parts = [part for part in parts if len(part[0])]
     if not parts or len(positions) == 0:
-        return np.zeros((len(positions), len(freqs)), dtype=np.complex128)
+        empty = np.zeros((len(positions), len(freqs)), dtype=np.complex128)
+        return empty if last_on is None else (empty, np.zeros((len(sub.positions), len(i_freq)), dtype=np.complex128))
     if method == "factorised" and grid is not None and any(part[3] is not None for part in parts):
-        return echo_factorised(parts, grid, freqs)
+        return echo_factorised(parts, grid, freqs, last_on)
     summer = _echo_direct if method == "direct" else _echo_chebyshev
-    return sum(summer(*part[:4], positions, freqs, part[4]) for part in parts)
+    whole = sum(summer(*part[:4], positions, freqs, part[4]) for part in parts)
+    return whole if last_on is None else (whole, summer(*parts[-1][:4], sub.positions, freqs[i_freq], parts[-1][4]))
 
 
 def _point_part(points, normals, weights, radar):
@@ -76,7 +87,7 @@ def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, pos
 
 def echo(tri: np.ndarray, visibility: np.ndarray, positions: np.ndarray | Aperture, freqs: np.ndarray,
          radar: RadarParams, method: str | None = None, points: np.ndarray | None = None,
-         diffuse: tuple | None = None) -> np.ndarray:
+         diffuse: tuple | None = None, diffuse_on: tuple | None = None):
     """Noise-free echo s(m, n) of a mesh's facets under radar.facet (DESIGN section 4), complex128 (M, N).
 
     tri : (K, 3, 3) float mm, corners counter-clockwise seen from outside; visibility : (K,)
@@ -88,7 +99,14 @@ def echo(tri: np.ndarray, visibility: np.ndarray, positions: np.ndarray | Apertu
     "chebyshev" or "factorised": for the facet integral on an Aperture, the series on each
     30 mm cluster's Chebyshev grid of antennas, interpolated (relative L2 error 1e-5 to
     5e-5 against the direct sum; see _summed for the rest); default radar.echo_method.
+
+    diffuse_on : (ix, iy, i_freq) int indices into an Aperture's axes and freqs: then returns
+    (echo, the diffuse part alone on that sub-grid (len(ix) len(iy), len(i_freq)) complex128),
+    the latter from the diffuse part's own sums on the same clusters, so it costs an
+    interpolation onto the sub-grid, not an echo (its power where the shards keep the echo).
     """
+    if diffuse_on is not None and diffuse is None:
+        raise ValueError("diffuse_on: there is no diffuse part to return")
     tri = np.asarray(tri, dtype=np.float64).reshape(-1, 3, 3)
     centres, normals, areas = triangle_geometry(tri)
     weights = np.asarray(visibility, dtype=np.float64) * areas
@@ -98,4 +116,4 @@ def echo(tri: np.ndarray, visibility: np.ndarray, positions: np.ndarray | Apertu
         parts = [_point_part(centres if points is None else points, normals, weights, radar)]
     if diffuse is not None:
         parts.append(_point_part(*diffuse))
-    return _summed(parts, positions, freqs, method, radar)
+    return _summed(parts, positions, freqs, method, radar, diffuse_on)

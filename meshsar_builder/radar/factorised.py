@@ -186,16 +186,21 @@ def _spread_cluster(coarse, node_x, node_y, interp_x, interp_y_t, centre, frame,
                 p_re[j] = step_re
 
 
-def echo_factorised(parts, grid, freqs):
+def echo_factorised(parts, grid, freqs, last_on=None):
     """The factorised echo on an aperture grid (see above) of one or more parts summed.
 
     parts : tuples (points, normals, weights, offsets, radar) of one kind each: facets
     (offsets (K, 3, 3)) or point scatterers (offsets None), radar giving their pattern.
-    The parts share the clusters, so one interpolation serves them all.
+    The parts share the clusters, so one interpolation serves them all. Returns (Nx Ny, N)
+    complex128.
+
+    last_on : (ix, iy, i_freq) int index arrays of a sub-grid of the aperture's axes and of
+    freqs (uniformly spaced): then also the last part's echo alone there, (len(ix) len(iy),
+    len(i_freq)) complex128, from its own coarse sums interpolated onto the sub-grid only.
+    The whole echo keeps its bytes: each coarse sum still adds the last part to the others'.
     """
     if NUMBA_MISSING:
         raise MeshsarError(NUMBA_MISSING)
-    df = per_pair._uniform_step(freqs)
     centres = np.concatenate([part[0] for part in parts])
     corners = np.concatenate([part[0][:, None, :] + (0.0 if part[3] is None else part[3]) * np.ones((1, 3, 1))
                               for part in parts])  # (K, 3, 3): a point is its own three corners
@@ -211,7 +216,12 @@ def echo_factorised(parts, grid, freqs):
     grids = np.concatenate([Aperture(frame, grid.z0_mm, nx, ny).positions for _, nx, ny in groups])
     n = len(freqs)
     summed = np.zeros((len(grids), n), dtype=np.complex128)
-    for i, (points, normals, weights, offsets, radar) in enumerate(parts):
+    half_slope = 0.5 * parts[0][4].slope_hz_per_s if parts[0][4].rvp else 0.0
+    last, alone = len(parts) - 1, None
+    # With last_on the last part is summed first and interpolated onto the sub-grid before the others add to
+    # its sums: 0 + p + f is f + p, the same bytes for the two parts that radar.echo makes.
+    for i in ([last] + list(range(last)) if last_on is not None else range(len(parts))):
+        points, normals, weights, offsets, radar = parts[i]
         mine = [items[kind[items] == i] - start_of[i] for items, _, _ in groups]
         counts = np.array([len(items) for items in mine])
         stops = np.cumsum(counts)
@@ -222,21 +232,44 @@ def echo_factorised(parts, grid, freqs):
                                  np.repeat(stops, sizes), freqs, radar, out=summed,
                                  tolerance=None if offsets is not None else POINT_SERIES_TOLERANCE) is None:
             # a span too wide for the series (warned): the direct sum
-            return sum(per_pair._echo_direct(*each[:4], grid.positions, freqs, each[4]) for each in parts)
-    out = np.zeros((len(x_mm), 2 * n, len(y_mm)))  # antenna (i, j), frequency k: out[i, 2 k (+1), j]
+            whole = sum(per_pair._echo_direct(*each[:4], grid.positions, freqs, each[4]) for each in parts)
+            if last_on is None:
+                return whole
+            ix, iy, i_freq = last_on
+            sub = Aperture(frame, grid.z0_mm, x_mm[ix], y_mm[iy]).positions
+            return whole, per_pair._echo_direct(*parts[-1][:4], sub, freqs[i_freq], parts[-1][4])
+        if i == last and last_on is not None:
+            alone = _interpolated(summed, direct, clusters, sizes, frame, grid.z0_mm, x_mm, y_mm, freqs, half_slope,
+                                  tuple(np.asarray(index) for index in last_on))
+    whole = _interpolated(summed, direct, clusters, sizes, frame, grid.z0_mm, x_mm, y_mm, freqs, half_slope)
+    return whole if last_on is None else (whole, alone)
+
+
+def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, freqs, half_slope, sub=None):
+    """The echo (Nx Ny, N) complex128 on the aperture from the coarse sums (N, N) (rows: the directly summed
+    group's aperture antennas, then each cluster's grid); or with sub = (ix, iy, i_freq) on that sub-grid of
+    the aperture and freqs (uniformly spaced), (len(ix) len(iy), len(i_freq)).
+    """
+    nx, ny, n = len(x_mm), len(y_mm), len(freqs)
+    ix, iy, i_freq = (slice(None),) * 3 if sub is None else sub
+    if sub is not None and len(i_freq) > 1 and np.all(np.diff(i_freq) == i_freq[1] - i_freq[0]):
+        i_freq = slice(i_freq[0], i_freq[-1] + 1, i_freq[1] - i_freq[0])  # the coarse sums' columns as views
+    x_sub, y_sub, f_sub = x_mm[ix], y_mm[iy], freqs[i_freq]
+    lx, ly, lf = len(x_sub), len(y_sub), len(f_sub)
+    out = np.zeros((lx, 2 * lf, ly))  # antenna (i, j), frequency k: out[i, 2 k (+1), j]
     start = 0
     if len(direct):
-        out.reshape(len(x_mm), n, 2, len(y_mm))[:] = (summed[:sizes[0]].view(np.float64)
-                                                      .reshape(len(x_mm), len(y_mm), n, 2).transpose(0, 2, 3, 1))
+        on_aperture = np.ascontiguousarray(summed[:sizes[0]].reshape(nx, ny, n)[ix][:, iy][:, :, i_freq])
+        out.reshape(lx, lf, 2, ly)[:] = on_aperture[..., None].view(np.float64).transpose(0, 2, 3, 1)
         start = sizes[0]
     tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
-    half_slope = 0.5 * parts[0][4].slope_hz_per_s if parts[0][4].rvp else 0.0
+    df = per_pair._uniform_step(f_sub)
     for centre, _, node_x, node_y in clusters:
         qx, qy = len(node_x), len(node_y)
-        _spread_cluster(summed[start:start + qx * qy], node_x, node_y,
-                        _barycentric(node_x, x_mm).astype(np.float32),
-                        np.ascontiguousarray(_barycentric(node_y, y_mm).T, dtype=np.float32), centre,
-                        frame, float(grid.z0_mm), x_mm, y_mm, float(freqs[0]), df, half_slope, tau_per_mm, out)
+        _spread_cluster(summed[start:start + qx * qy, i_freq], node_x, node_y,
+                        _barycentric(node_x, x_sub).astype(np.float32),  # each row on its own: a sub-grid's rows
+                        np.ascontiguousarray(_barycentric(node_y, y_sub).T, dtype=np.float32), centre,
+                        frame, float(z0_mm), x_sub, y_sub, float(f_sub[0]), df, half_slope, tau_per_mm, out)
         start += qx * qy
-    out = out.reshape(len(x_mm), n, 2, len(y_mm))
-    return (out[:, :, 0] + 1j * out[:, :, 1]).transpose(0, 2, 1).reshape(-1, n)
+    out = out.reshape(lx, lf, 2, ly)
+    return (out[:, :, 0] + 1j * out[:, :, 1]).transpose(0, 2, 1).reshape(-1, lf)

@@ -97,15 +97,20 @@ def _chunks(total: int, size: int):
 
 
 def echo(tri: np.ndarray, visibility: np.ndarray, positions, freqs: np.ndarray, radar: RadarParams,
-         points: np.ndarray | None = None, diffuse: tuple | None = None, device: str = "cuda") -> np.ndarray:
+         points: np.ndarray | None = None, diffuse: tuple | None = None, diffuse_on: tuple | None = None,
+         device: str = "cuda"):
     """Noise-free echo s(m, n) (M, N) complex128 of a mesh's facets under radar.facet, computed on `device`.
 
     The arguments and the result are those of radar.echo.echo: tri (K, 3, 3) float mm,
     visibility (K,) float, positions (M, 3) mm or an Aperture, freqs (N,) Hz, points (K, 3)
     mm the point scatterers of "centroid" / "random" (default the centroids), diffuse the
-    diffuse part's (points, normals, weights, pattern radar) added. A direct sum in
-    float64: the model itself, which the CPU's factorised echo follows to 1e-5 - 4e-4.
+    diffuse part's (points, normals, weights, pattern radar) added, and with diffuse_on (ix,
+    iy, i_freq) also that part alone on a sub-grid of the Aperture (taken from its own sum
+    here). A direct sum in float64: the model itself, which the CPU's factorised echo
+    follows to 1e-5 - 4e-4.
     """
+    if diffuse_on is not None and (diffuse is None or not isinstance(positions, Aperture)):
+        raise ValueError("diffuse_on: needs a diffuse part and the antennas as an Aperture")
     tri = np.asarray(tri, dtype=np.float64).reshape(-1, 3, 3)
     centres, normals, areas = triangle_geometry(tri)
     weights = np.asarray(visibility, dtype=np.float64) * areas
@@ -114,9 +119,14 @@ def echo(tri: np.ndarray, visibility: np.ndarray, positions, freqs: np.ndarray, 
     else:
         scatterers = centres if points is None else np.asarray(points, dtype=np.float64)
         out = _direct_sum(scatterers, normals, weights, None, positions, freqs, radar, device)
-    if diffuse is not None:
-        out = out + point_echo(*diffuse[:3], positions, freqs, diffuse[3], device)
-    return out
+    if diffuse is None:
+        return out
+    alone = point_echo(*diffuse[:3], positions, freqs, diffuse[3], device)
+    if diffuse_on is None:
+        return out + alone
+    ix, iy, i_freq = diffuse_on
+    kept = alone.reshape(len(positions.x_mm), len(positions.y_mm), len(freqs))[np.ix_(ix, iy, i_freq)]
+    return out + alone, kept.reshape(len(ix) * len(iy), len(i_freq))
 
 
 def point_echo(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, positions: np.ndarray,
@@ -205,7 +215,6 @@ def view_volume(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.
 
 
 def view_functions(device: str):
-    """(echo, point_echo, view_volume) bound to `device`, with the signatures render_sample calls the CPU ones with."""
+    """(echo, view_volume) bound to `device`, with the signatures render_sample calls the CPU ones with."""
     check_device(device)
-    return (functools.partial(echo, device=device), functools.partial(point_echo, device=device),
-            functools.partial(view_volume, device=device))
+    return functools.partial(echo, device=device), functools.partial(view_volume, device=device)

@@ -9,7 +9,7 @@ import numpy as np
 
 from meshsar_builder.radar.appearance import surface_depth, view_appearance
 from meshsar_builder.radar.diffuse import Scatterers, draw_scatterers, lambert, place, seen_by
-from meshsar_builder.radar.echo import echo, point_echo
+from meshsar_builder.radar.echo import echo
 from meshsar_builder.radar.imaging import ImageParams, view_volume, volume_images
 from meshsar_builder.radar.noise import add_noise, draw_seeds, unit_noise
 from meshsar_builder.radar.params import (
@@ -19,7 +19,6 @@ from meshsar_builder.radar.params import (
     frequencies,
     grid_indices,
     probe_points,
-    sub_aperture,
 )
 from meshsar_builder.radar.visibility import embree_intersector, facet_geometry, scatterer_points, visibility
 
@@ -39,14 +38,14 @@ def noise_scale(signal_power: float, signal_peak: float, noise_rms: float, radar
 
 
 def view_functions(device: str):
-    """(echo, point_echo, view_volume) of a view for radar.device: the numba echoes and numpy imaging on "cpu", else torch's.
+    """(echo, view_volume) of a view for radar.device: the numba echo and numpy imaging on "cpu", else torch's.
 
     The torch module is imported only for a CUDA device, so a CPU build never needs torch.
     All take and return numpy arrays; visibility (Embree), the diffuse scatterers and the
     noise stay on the CPU either way.
     """
     if device == "cpu":
-        return echo, point_echo, view_volume
+        return echo, view_volume
     from meshsar_builder.radar import gpu
 
     return gpu.view_functions(device)
@@ -69,7 +68,8 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     it was. With radar.diffuse false there is no diffuse part and the bytes are those of
     the specular echo alone. The diffuse echo of the scatterers on visible facets (weight
     times the host facet's visibility, Lambert's law) is added to the facet echo, in the
-    same call (the factorised echo interpolates both at once).
+    same call (the factorised echo interpolates both at once, and the diffuse part alone
+    onto the stored echo grid for its power).
 
     The noise is drawn with unit power and imaged on its own (imaging is linear), so
     each view knows its image-domain noise floor and can scale the noise to
@@ -81,12 +81,12 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     `noise_sigma` (V,) float64 (0 without noise), and `views`: per view a dict of `name`,
     `visible_facets` (V_k > 0), `visible_area_mm2` (sum of V_k area_k), `signal_power`
     and `noise_power` (mean per raw sample), `diffuse_power` (the diffuse echo's own mean
-    power on the stored echo grid, summed there on its own; null without it) and
+    power on the stored echo grid, interpolated there from its own sums; null without it) and
     `visible_scatterers`, `raw_snr_db`, `noise_floor_db` (the
     image noise's RMS in dB below the noise-free image's peak; null without noise), `rays`,
     `appearance` (radar.appearance.view_appearance: speckle share, glint contrast, depth
-    error against the mesh), and `seconds` for visibility, echo (the diffuse part
-    included), diffuse (its power on the echo grid) and imaging (with the appearance).
+    error against the mesh), and `seconds` for visibility, echo (the diffuse part and its
+    power included) and imaging (with the noise's draw and the appearance).
 
     radar.device picks where each view's echo and imaging run (view_functions); the noise
     is drawn here on the CPU from rng either way, so a CUDA build differs from a CPU
@@ -110,7 +110,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     keep_loss = np.ix_(*grid_indices(radar, radar.loss_decimation))
     shape = (*radar.aperture, radar.n_samples)
     noisy = radar.snr_db != math.inf and radar.image_snr_db != math.inf
-    view_echo, view_point_echo, volume_of = view_functions(radar.device)
+    view_echo, volume_of = view_functions(radar.device)
     sar, decimated, clean, sigmas, stats = [], [], [], [], []
     for view, seed in zip(radar.views, seeds):
         t0 = time.perf_counter()
@@ -119,19 +119,18 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         seen = vis > 0
         grid = aperture(radar, view)  # the numba echo factorises on the grid
         lit = seen_by(*diffuse, vis) if diffuse is not None else None
-        signal = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen],
-                           diffuse=None if lit is None else (*lit, lambert(radar)))
-        t_diffuse = time.perf_counter()
         diffuse_power, n_scatterers = None, 0
-        if lit is not None:  # the diffuse part's own power, where the shards keep the echo
+        if lit is None:
+            signal = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen])
+        else:  # and the diffuse part's own power, where the shards keep the echo
+            signal, diffuse_echo = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen],
+                                             diffuse=(*lit, lambert(radar)), diffuse_on=echo_indices)
             n_scatterers = len(lit[2])
-            on_grid = sub_aperture(radar, view, radar.echo_decimation)
-            diffuse_echo = view_point_echo(*lit, on_grid, freqs[echo_indices[2]], lambert(radar))
             diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
+        t2 = time.perf_counter()
         signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
         noise = unit_noise(shape, seed) if noisy else None
-        t2 = time.perf_counter()
         volume = volume_of(signal, freqs, x_mm, y_mm, radar.z0_mm, images)
         peak = float(np.abs(volume).max())
         sigma, floor_db, image_noise = 0.0, None, 0.0
@@ -156,7 +155,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
             "visible_scatterers": n_scatterers,
             "raw_snr_db": 10 * math.log10(signal_power / noise_power) if noise_power > 0 and signal_power > 0 else None,
             "noise_floor_db": floor_db, "rays": rays, "appearance": look,
-            "seconds": {"visibility": t1 - t0, "echo": t_diffuse - t1, "diffuse": t2 - t_diffuse, "imaging": t3 - t2},
+            "seconds": {"visibility": t1 - t0, "echo": t2 - t1, "imaging": t3 - t2},
         })
     return {
         "sar": np.stack(sar).astype(np.float16),
