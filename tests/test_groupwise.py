@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from meshsar_builder.geometry.groupwise import bbox_centred, final_round, mean_template, movement, taubin
 from meshsar_builder.geometry.intersections import self_intersecting_faces
-from meshsar_builder.geometry.measures import flipped_faces
+from meshsar_builder.geometry.measures import flipped_faces, unique_edges
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.ssm import population_pose, rigid_fit
 from meshsar_builder.pipeline.errors import MeshError
@@ -106,3 +106,14 @@ def test_fewer_than_two_fits_is_refused():
 def test_the_last_round_is_the_limit_or_the_first_converged_one(rounds, round_, moved, last):
     params = dataclasses.replace(RegistrationParams(), groupwise_rounds=rounds)
     assert final_round(round_, moved, params) is last
+
+
+@settings(max_examples=60, deadline=None)
+@given(faces=st.lists(st.lists(st.integers(0, 40), min_size=3, max_size=3), max_size=60),
+       dtype=st.sampled_from([np.int32, np.int64]))
+def test_unique_edges_are_the_rows_numpy_finds(faces, dtype):
+    """The int64-key unique against np.unique over rows: the same edges, order and dtype (an empty mesh too)."""
+    faces = np.array(faces, dtype=dtype).reshape(-1, 3)
+    rows = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    got = unique_edges(faces)
+    assert got.dtype == faces.dtype and got.shape == rows.shape and np.array_equal(got, rows)

@@ -14,9 +14,17 @@ def vertex_areas(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def unique_edges(faces: np.ndarray) -> np.ndarray:
-    """(e, 2) the undirected edges of a triangle mesh, each once."""
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return np.unique(edges, axis=0)
+    """faces : (m, 3) int -> (e, 2) the undirected edges of a triangle mesh, each once, (low, high), sorted.
+
+    Each edge as one int64 key low * n + high: a 1-D unique is ~10x faster than np.unique's rows (the fold
+    guard asks for the edges every iteration), in the same order.
+    """
+    edges = np.sort(np.asarray(faces)[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    if not len(edges):
+        return edges
+    n = int(edges[:, 1].max()) + 1
+    keys = np.unique(edges[:, 0].astype(np.int64) * n + edges[:, 1])
+    return np.stack([keys // n, keys % n], axis=1).astype(edges.dtype)
 
 
 def edge_lengths(verts: np.ndarray, edges: np.ndarray) -> np.ndarray:
