@@ -3,8 +3,10 @@
 A gallery of samples (each mesh rendered from the views beside its SAR
 channels), the shape model's variance explained and a mode strip (mean ± 3σ),
 chamber volumes over the cycle of the dynamic subjects, counts per source,
-subset and split, and the time each stage took per item. One item; it reads the
-index, a few shards, the shape model and the stages' sidecars.
+subset and split, and the time each stage took per item. One item per figure
+(gallery, speckle, shape model, cycle, motion), side by side; each returns its
+section's lines, and `finish` writes README.md from them and the index (the
+card was one 5-7 s item, the longest serial part of a small build).
 """
 
 from __future__ import annotations
@@ -34,31 +36,25 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     if not index_path.exists() or not results.of("shards"):
         return []
     model = ctx.stage_dir("ssm") / "model.npz"
-    split = split_path(ctx.out, ctx.recipe.splits.seed)
-    inputs = tuple(str(p) for p in (index_path, split, model, ctx.stage_dir("ssm") / "report.json") if p.exists())
     tracks = merge_cycles(results.of("track").values())
     track = tracks[0] if tracks else None  # the first beating subject's frames in correspondence
-    if track is not None:
-        inputs += tuple(str(ctx.stage_dir("track") / f"{mid}.ply") for mid in track["frames"])
     dynamic = [r for r in results.of("meshes").values() if r.get("frame") is not None]
-    timing = {}
-    for stage in STAGE_ORDER:
-        secs = [r["seconds"] for r in results.of(stage).values()]
-        if secs:
-            timing[stage] = {"items": len(secs), "seconds": round(sum(secs), 1), "per_item": round(sum(secs) / len(secs), 2)}
-    outputs = ["README.md", "gallery.png"]
-    if model.exists():
-        outputs += ["ssm_variance.png", "ssm_modes.png"]
-    if dynamic:
-        outputs.append("cycle.png")
-    if track is not None:
-        outputs.append("motion.png")
+    # Each figure from the index (it names every shard by its digest, so it changes with any sample) and what
+    # else it reads.
+    figures = [("gallery", ("gallery.png",), (), {})]
     if ctx.recipe.radar.diffuse:
-        outputs.append("speckle.png")
-    return [Item("card", tuple(outputs), inputs=inputs, params={"gallery": GALLERY, "version": 1},
-                 data={"dynamic": dynamic, "timing": timing, "track": track,
-                       "tracks": [[rec["reference"], len(rec["frames"]), len(rec["in_correspondence"])]
-                                  for rec in tracks]})]
+        figures.append(("speckle", ("speckle.png",), (), {"track": track}))
+    if model.exists():
+        figures.append(("shape-model", ("ssm_variance.png", "ssm_modes.png"),
+                        (model, ctx.stage_dir("ssm") / "report.json"), {}))
+    if dynamic:
+        figures.append(("cycle", ("cycle.png",), (), {"dynamic": dynamic}))
+    if track is not None:
+        figures.append(("motion", ("motion.png",), tuple(ctx.stage_dir("track") / f"{mid}.ply" for mid in track["frames"]),
+                        {"track": track, "tracks": [[rec["reference"], len(rec["frames"]), len(rec["in_correspondence"])]
+                                                    for rec in tracks]}))
+    return [Item(name, outputs, inputs=tuple(str(p) for p in (index_path, *inputs)),
+                 params={"gallery": GALLERY, "version": 1}, data=data) for name, outputs, inputs, data in figures]
 
 
 def _median_range(values: list, digits: int) -> str:
@@ -124,46 +120,78 @@ def speckle_section(ctx: Context, index: dict, track: dict | None, folder) -> li
             "![speckle](speckle.png)", ""]
 
 
-def run(ctx: Context, item: Item) -> dict:
-    folder = ctx.stage_dir(NAME)
+def gallery_section(ctx: Context, index: dict, folder) -> list[str]:
+    """gallery.png: GALLERY samples, each mesh rendered from the views beside its SAR channels."""
+    card.gallery(card.load_samples(ctx.out, index, card.gallery_ids(index, GALLERY)), index, folder / "gallery.png")
+    return ["## Samples", "", "Each row: per view the mesh (coloured by structure, same field of view as the images), "
+            "then the SAR channels (intensity in dB over the dynamic range; depth along w, red toward the radar).", "",
+            "![gallery](gallery.png)", ""]
+
+
+def shape_model_section(ctx: Context, folder) -> list[str]:
+    """ssm_variance.png and ssm_modes.png: the variance explained and the mean +- 3 sigma along the first modes."""
     index = read_json(ctx.out / INDEX_NAME)
-    ids = card.gallery_ids(index, GALLERY)
-    card.gallery(card.load_samples(ctx.out, index, ids), index, folder / "gallery.png")
+    report = read_json(ctx.stage_dir("ssm") / "report.json")
+    card.ssm_variance_plot(report, folder / "ssm_variance.png")
+    card.ssm_mode_strip(load_model(ctx.stage_dir("ssm") / "model.npz"), index["views"][0], index["fov_mm"],
+                        folder / "ssm_modes.png")
+    return ["## Shape model", "",
+            f"{report['subjects']} registered subjects, {report['n_vertices']} vertices, {report['modes']} modes "
+            f"({report['compactness'][-1] * 100:.1f} % of the variance). Generalisation (leave-one-out, all modes): "
+            f"{report['generalisation_mm'][-1]:.2f} mm; specificity: {report['specificity_mm']:.2f} ± "
+            f"{report['specificity_std_mm']:.2f} mm; self-intersecting draws redrawn: {report['self_intersection_redraws']}.", "",
+            "![variance](ssm_variance.png)", "", "Mean ± 3σ along the first modes:", "", "![modes](ssm_modes.png)", ""]
+
+
+def cycle_section(dynamic: list[dict], folder) -> list[str]:
+    card.cycle_plot(dynamic, folder / "cycle.png")
+    return ["## Dynamic subjects", "", "Chamber volumes over the cycle, from the label maps' voxel counts.", "",
+            "![cycle](cycle.png)", ""]
+
+
+def motion_section(ctx: Context, track: dict, tracks: list, folder) -> list[str]:
+    card.motion_plot({mid: read_ply(ctx.stage_dir("track") / f"{mid}.ply") for mid in track["frames"]}, track,
+                     folder / "motion.png")
+    return ["## Frames in correspondence", "",
+            "Each beating subject's reference frame (ED, else the first) fitted to every frame, so all its "
+            "frames share one mesh (stages/track.py); a frame whose fit was rejected keeps its own mesh.", "",
+            "![motion](motion.png)", "",
+            card.markdown_table(["reference frame", "frames", "in correspondence"], tracks), ""]
+
+
+def run(ctx: Context, item: Item) -> dict:
+    """One figure of the card: its file(s), and its section's lines for README.md (finish)."""
+    folder = ctx.stage_dir(NAME)
+    if item.id == "gallery":
+        lines = gallery_section(ctx, read_json(ctx.out / INDEX_NAME), folder)
+    elif item.id == "speckle":
+        lines = speckle_section(ctx, read_json(ctx.out / INDEX_NAME), item.data["track"], folder)
+    elif item.id == "shape-model":
+        lines = shape_model_section(ctx, folder)
+    elif item.id == "cycle":
+        lines = cycle_section(item.data["dynamic"], folder)
+    else:
+        lines = motion_section(ctx, item.data["track"], item.data["tracks"], folder)
+    return {"lines": lines}
+
+
+SECTION_ORDER = ("gallery", "speckle", "shape-model", "cycle", "motion")  # the radar section follows the gallery
+
+
+def finish(ctx: Context, results: Results) -> None:
+    """card/README.md: the index's summary, each figure's section (run), the radar lines, counts and time per stage."""
+    records = results.of(NAME)
+    if not records:
+        return
+    index = read_json(ctx.out / INDEX_NAME)
     lines = [f"# Dataset card: {index['recipe']}", "",
              f"{index['n_samples']} samples in {len(index['shards'])} shards; views "
              f"{', '.join(v['name'] for v in index['views'])}; images {index['image_size'][0]}×{index['image_size'][1]} "
              f"over {index['fov_mm']} mm; channels {', '.join(index['channels'])}. "
-             f"Recipe sha256 `{index['recipe_sha256'][:12]}`, code {index['code_version']}.", "",
-             "## Samples", "", "Each row: per view the mesh (coloured by structure, same field of view as the images), "
-             "then the SAR channels (intensity in dB over the dynamic range; depth along w, red toward the radar).", "",
-             "![gallery](gallery.png)", ""]
-    lines += radar_section(index)
-    if "speckle.png" in item.outputs:
-        lines += speckle_section(ctx, index, item.data["track"], folder)
-    if "ssm_variance.png" in item.outputs:
-        report = read_json(ctx.stage_dir("ssm") / "report.json")
-        card.ssm_variance_plot(report, folder / "ssm_variance.png")
-        card.ssm_mode_strip(load_model(ctx.stage_dir("ssm") / "model.npz"), index["views"][0], index["fov_mm"],
-                            folder / "ssm_modes.png")
-        lines += ["## Shape model", "",
-                  f"{report['subjects']} registered subjects, {report['n_vertices']} vertices, {report['modes']} modes "
-                  f"({report['compactness'][-1] * 100:.1f} % of the variance). Generalisation (leave-one-out, all modes): "
-                  f"{report['generalisation_mm'][-1]:.2f} mm; specificity: {report['specificity_mm']:.2f} ± "
-                  f"{report['specificity_std_mm']:.2f} mm; self-intersecting draws redrawn: {report['self_intersection_redraws']}.", "",
-                  "![variance](ssm_variance.png)", "", "Mean ± 3σ along the first modes:", "", "![modes](ssm_modes.png)", ""]
-    if "cycle.png" in item.outputs:
-        card.cycle_plot(item.data["dynamic"], folder / "cycle.png")
-        lines += ["## Dynamic subjects", "", "Chamber volumes over the cycle, from the label maps' voxel counts.", "",
-                  "![cycle](cycle.png)", ""]
-    if "motion.png" in item.outputs:
-        track = item.data["track"]
-        card.motion_plot({mid: read_ply(ctx.stage_dir("track") / f"{mid}.ply") for mid in track["frames"]}, track,
-                         folder / "motion.png")
-        lines += ["## Frames in correspondence", "",
-                  "Each beating subject's reference frame (ED, else the first) fitted to every frame, so all its "
-                  "frames share one mesh (stages/track.py); a frame whose fit was rejected keeps its own mesh.", "",
-                  "![motion](motion.png)", "",
-                  card.markdown_table(["reference frame", "frames", "in correspondence"], item.data["tracks"]), ""]
+             f"Recipe sha256 `{index['recipe_sha256'][:12]}`, code {index['code_version']}.", ""]
+    for name in SECTION_ORDER:
+        lines += records[name]["lines"] if name in records else []
+        lines += radar_section(index) if name == "gallery" else []
     split_file = split_path(ctx.out, ctx.recipe.splits.seed)
     split = read_json(split_file) if split_file.exists() else {}
     names = [k for k in split if k not in RESERVED]
@@ -174,12 +202,15 @@ def run(ctx: Context, item: Item) -> dict:
     header = ["source", "subset", "samples", *(f"{n} (seed {split['seed']})" for n in names)]
     table = [[src, sub, sum(c.values()), *(c.get(n, 0) for n in names)] for (src, sub), c in sorted(rows.items())]
     lines += ["## Counts", "", card.markdown_table(header, table), ""]
-    timing = item.data["timing"]
+    timing = []
+    for stage in STAGE_ORDER:
+        secs = [r["seconds"] for r in results.of(stage).values()]
+        if secs:
+            timing.append([stage, len(secs), round(sum(secs), 1), round(sum(secs) / len(secs), 2)])
     lines += ["## Time per stage", "", "Item seconds as recorded in the stages' sidecars (one BLAS thread per item).", "",
-              card.markdown_table(["stage", "items", "seconds", "seconds per item"],
-                                  [[s, t["items"], t["seconds"], t["per_item"]] for s, t in timing.items()]), ""]
-    write_bytes(folder / "README.md", "\n".join(lines).encode("utf-8"))
-    return {"gallery": ids, "counts": index["counts"]}
+              card.markdown_table(["stage", "items", "seconds", "seconds per item"], timing), ""]
+    write_bytes(ctx.stage_dir(NAME) / "README.md", "\n".join(lines).encode("utf-8"))
 
 
-STAGE = Stage(name=NAME, version=4, plan=plan, run=run)
+# Version 5: one item per figure, README.md written by finish.
+STAGE = Stage(name=NAME, version=5, plan=plan, run=run, finish=finish)

@@ -119,6 +119,7 @@ class Results:
     failures: list[dict] = field(default_factory=list)
     summary: list[dict] = field(default_factory=list)
     passes: dict[str, int] = field(default_factory=dict)  # per stage, passes completed in this build
+    began: float = field(default_factory=time.perf_counter)  # the summary rows' `start` counts from here
 
     def of(self, stage: str) -> dict[str, dict]:
         return self.done.get(stage, {})
@@ -419,6 +420,7 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bo
     results.failures.extend(sorted(failed, key=lambda f: f["item"]))
     row = {
         "stage": stage.name,
+        "start": round(t0 - results.began, 2),  # seconds into the build: stages side by side overlap (run_stages)
         "items": planned,
         "ran": todo - len(failed),
         "skipped": planned - todo,
