@@ -50,9 +50,9 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     if dynamic:
         figures.append(("cycle", ("cycle.png",), (), {"dynamic": dynamic}))
     if track is not None:
-        figures.append(("motion", ("motion.png",), tuple(ctx.stage_dir("track") / f"{mid}.ply" for mid in track["frames"]),
-                        {"track": track, "tracks": [[rec["reference"], len(rec["frames"]), len(rec["in_correspondence"])]
-                                                    for rec in tracks]}))
+        frames = tuple(ctx.stage_dir("track") / f"{mid}.ply" for mid in track["frames"])
+        counts = [[rec["reference"], len(rec["frames"]), len(rec["in_correspondence"])] for rec in tracks]
+        figures.append(("motion", ("motion.png",), frames, {"track": track, "tracks": counts}))
     return [Item(name, outputs, inputs=tuple(str(p) for p in (index_path, *inputs)),
                  params={"gallery": GALLERY, "version": 1}, data=data) for name, outputs, inputs, data in figures]
 

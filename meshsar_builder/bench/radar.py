@@ -71,8 +71,8 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
     """Best-of-REPEATS seconds of one view as render_sample does it: visibility, echo, diffuse echo, imaging (signal and noise).
 
     scatterers : radar.diffuse.Scatterers on this mesh, or None for no diffuse part, whose
-    seconds are those it adds to the echo call (its power's sub-grid included). `signal` is the specular echo alone (what
-    the accuracy and GPU rows compare).
+    seconds are those it adds to the echo call (its power on the stored echo grid included).
+    `signal` is the specular echo alone (what the accuracy and GPU rows compare).
     """
     import meshsar_builder.radar.diffuse as RD
     import meshsar_builder.radar.echo as RE

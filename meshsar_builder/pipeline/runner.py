@@ -431,7 +431,8 @@ def run_stage(ctx: Context, stage: Stage, results: Results, pool=None, force: bo
     return row
 
 
-def run_stages(ctx: Context, stages: dict[str, Stage], results: Results, pool=None, force: tuple[str, ...] = ()) -> None:
+def run_stages(ctx: Context, stages: dict[str, Stage], results: Results, pool=None,
+               force: tuple[str, ...] = ()) -> None:
     """Run `stages` (name -> Stage, in pipeline order), each once the stages it reads (Stage.after) have finished.
 
     With a pool, stages that do not read each other run side by side: each in a thread of this
