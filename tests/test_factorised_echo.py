@@ -39,6 +39,18 @@ def interpolated(tri, radar, grid):
     return RF.factorised_clusters(centres, tri, grid, k_max)[1]
 
 
+def lit_scene(mesh_name, view, seed, radar):
+    """A mesh of MESHES seen from view: its visible facets (K, 3, 3), their visibility (K,) and its diffuse
+    scatterers that the view lights (points, normals, weights), drawn from seed."""
+    from meshsar_builder.radar.diffuse import draw_scatterers, place, seen_by
+
+    mesh = MESHES[mesh_name]()
+    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
+    scatterers = draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(seed))
+    return verts[faces][vis > 0], vis[vis > 0], seen_by(*place(verts, faces, scatterers, radar), scatterers.face, vis)
+
+
 @pytest.mark.parametrize("mesh_name, view, overrides", [
     ("icosphere", "anterior", {}),
     ("torus", "left", {"p": 2.5, "kappa": 0.1, "z0_mm": 200.0}),
@@ -124,18 +136,13 @@ def test_aperture_positions_are_the_grid():
 def test_diffuse_part_shares_the_clusters_within_its_budget(mesh_name, view):
     """The diffuse scatterers added in the facets' call: within 1e-3 of their own series sum (Lambert's kink is
     their whole lobe; measured 1-4e-4), and the facets' part as accurate as without them."""
-    from meshsar_builder.radar.diffuse import draw_scatterers, lambert, place, seen_by
+    from meshsar_builder.radar.diffuse import lambert
 
     radar = RP.RadarParams()
-    mesh = MESHES[mesh_name]()
-    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
-    seen = vis > 0
-    scatterers = draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(3))
-    lit = seen_by(*place(verts, faces, scatterers, radar), scatterers.face, vis)
+    tri, vis, lit = lit_scene(mesh_name, view, 3, radar)
     grid, freqs = RP.aperture(radar, view), RP.frequencies(radar)
-    both = RE.echo(verts[faces][seen], vis[seen], grid, freqs, radar, diffuse=(*lit, lambert(radar)))
-    specular = RE.echo(verts[faces][seen], vis[seen], grid.positions, freqs, radar, method="chebyshev")
+    both = RE.echo(tri, vis, grid, freqs, radar, diffuse=(*lit, lambert(radar)))
+    specular = RE.echo(tri, vis, grid.positions, freqs, radar, method="chebyshev")
     diffuse = RE.point_echo(*lit, grid.positions, freqs, lambert(radar), method="chebyshev")
     assert relative_error(both - specular, diffuse) <= 1e-3
     assert relative_error(both - diffuse, specular) <= 1e-3 * np.linalg.norm(diffuse) / np.linalg.norm(specular) + 1e-4
@@ -146,31 +153,26 @@ def test_diffuse_part_alone_on_a_sub_grid(mesh_name, view):
     """diffuse_on: the whole echo keeps its bytes; the diffuse part alone on a sub-grid (every 3rd and 5th antenna
     and every 2nd frequency, offset) is the full grid's own diffuse part there to float32's rounding, and within
     its budget of the series; summed without clusters, it is the series' bytes."""
-    from meshsar_builder.radar.diffuse import draw_scatterers, lambert, place, seen_by
+    from meshsar_builder.radar.diffuse import lambert
 
     radar = RP.RadarParams()
-    mesh = MESHES[mesh_name]()
-    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, view))
-    seen = vis > 0
-    scatterers = draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(4))
-    diffuse = (*seen_by(*place(verts, faces, scatterers, radar), scatterers.face, vis), lambert(radar))
+    tri, vis, lit = lit_scene(mesh_name, view, 4, radar)
+    diffuse = (*lit, lambert(radar))
     grid, freqs = RP.aperture(radar, view), RP.frequencies(radar)
-    tri = verts[faces][seen]
     sub = (np.arange(1, 80, 3), np.arange(2, 80, 5), np.arange(1, 64, 2))
-    whole = RE.echo(tri, vis[seen], grid, freqs, radar, diffuse=diffuse)
-    again, alone = RE.echo(tri, vis[seen], grid, freqs, radar, diffuse=diffuse, diffuse_on=sub)
+    whole = RE.echo(tri, vis, grid, freqs, radar, diffuse=diffuse)
+    again, alone = RE.echo(tri, vis, grid, freqs, radar, diffuse=diffuse, diffuse_on=sub)
     assert again.tobytes() == whole.tobytes() and alone.shape == (27 * 16, 32)
-    _, everywhere = RE.echo(tri, vis[seen], grid, freqs, radar, diffuse=diffuse,
+    _, everywhere = RE.echo(tri, vis, grid, freqs, radar, diffuse=diffuse,
                             diffuse_on=(np.arange(80), np.arange(80), np.arange(64)))
     assert relative_error(alone, everywhere.reshape(80, 80, 64)[np.ix_(*sub)].reshape(alone.shape)) <= 1e-5
     there = RP.Aperture(grid.frame, grid.z0_mm, np.asarray(grid.x_mm)[sub[0]], np.asarray(grid.y_mm)[sub[1]])
     series = RE.point_echo(*diffuse[:3], there.positions, freqs[sub[2]], diffuse[3], method="chebyshev")
     assert relative_error(alone, series) <= 1e-3
-    _, summed = RE.echo(tri, vis[seen], grid, freqs, radar, method="chebyshev", diffuse=diffuse, diffuse_on=sub)
+    _, summed = RE.echo(tri, vis, grid, freqs, radar, method="chebyshev", diffuse=diffuse, diffuse_on=sub)
     assert summed.tobytes() == series.tobytes()
     with pytest.raises(ValueError, match="no diffuse part"):
-        RE.echo(tri, vis[seen], grid, freqs, radar, diffuse_on=sub)
+        RE.echo(tri, vis, grid, freqs, radar, diffuse_on=sub)
 
 
 @pytest.mark.parametrize("aperture, step_mm", [((80, 80), 2.0), ((24, 24), 6.0)])
@@ -178,22 +180,17 @@ def test_clusters_without_scatterers_add_nothing_of_them(aperture, step_mm):
     """Scatterers on one side of a torus only: the clusters (and, on the small aperture, the facets summed on
     the aperture itself) that hold facets and no scatterers run the scatterers' call with nothing to sum, which
     must add exactly their absence."""
-    from meshsar_builder.radar.diffuse import draw_scatterers, lambert, place, seen_by
+    from meshsar_builder.radar.diffuse import lambert
 
     radar = RP.RadarParams(aperture=aperture, step_mm=step_mm, **SMALL_GRID)
-    mesh = MESHES["torus"]()
-    verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    vis, _ = RV.visibility(verts, faces, RP.probe_points(radar, "anterior"))
-    seen = vis > 0
-    scatterers = draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(5))
-    lit = seen_by(*place(verts, faces, scatterers, radar), scatterers.face, vis)
+    tri, vis, lit = lit_scene("torus", "anterior", 5, radar)
     side = lit[0][:, 0] > 25.0
     lit = tuple(x[side] for x in lit)
     cubes = lambda points: {tuple(c) for c in np.floor(points / RF.FACTORISED_CELL_MM).astype(int)}  # noqa: E731
-    assert cubes(verts[faces][seen].mean(axis=1)) - cubes(lit[0])  # some facets' cubes hold no scatterer
+    assert cubes(tri.mean(axis=1)) - cubes(lit[0])  # some facets' cubes hold no scatterer
     grid, freqs = RP.aperture(radar, "anterior"), RP.frequencies(radar)
-    both = RE.echo(verts[faces][seen], vis[seen], grid, freqs, radar, diffuse=(*lit, lambert(radar)))
-    alone = RE.echo(verts[faces][seen], vis[seen], grid, freqs, radar)
+    both = RE.echo(tri, vis, grid, freqs, radar, diffuse=(*lit, lambert(radar)))
+    alone = RE.echo(tri, vis, grid, freqs, radar)
     diffuse = RE.point_echo(*lit, grid.positions, freqs, lambert(radar), method="chebyshev")
     assert np.isfinite(both).all()
     assert relative_error(both - alone, diffuse) <= 1e-3

@@ -197,7 +197,7 @@ def echo_factorised(parts, grid, freqs, last_on=None):
     last_on : (ix, iy, i_freq) int index arrays of a sub-grid of the aperture's axes and of
     freqs (uniformly spaced): then also the last part's echo alone there, (len(ix) len(iy),
     len(i_freq)) complex128, from its own coarse sums interpolated onto the sub-grid only.
-    The whole echo keeps its bytes: each coarse sum still adds the last part to the others'.
+    With the two parts that radar.echo makes, the whole echo keeps its bytes (below).
     """
     if NUMBA_MISSING:
         raise MeshsarError(NUMBA_MISSING)
@@ -246,7 +246,7 @@ def echo_factorised(parts, grid, freqs, last_on=None):
 
 
 def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, freqs, half_slope, sub=None):
-    """The echo (Nx Ny, N) complex128 on the aperture from the coarse sums (N, N) (rows: the directly summed
+    """The echo (Nx Ny, N) complex128 on the aperture from the coarse sums (G, N) (rows: the directly summed
     group's aperture antennas, then each cluster's grid); or with sub = (ix, iy, i_freq) on that sub-grid of
     the aperture and freqs (uniformly spaced), (len(ix) len(iy), len(i_freq)).
     """

@@ -198,29 +198,31 @@ def _range_bounds(facets, positions, first, last, low, high):
     """Per antenna m, the least and greatest distance (mm) to the points of facets first[m]:last[m], into low,
     high (M,); 0 and 0 for an antenna with none."""
     block = LANES
-    r2 = np.empty(block)
     lo = np.empty(block)
     hi = np.empty(block)
     for m in range(positions.shape[0]):
+        if last[m] <= first[m]:
+            low[m] = 0.0
+            high[m] = 0.0
+            continue
         ax, ay, az = positions[m, 0], positions[m, 1], positions[m, 2]
-        lo[:] = np.inf
-        hi[:] = 0.0
+        lanes = min(block, last[m] - first[m])  # only these are filled: a cluster's antenna sums ~100 items
+        lo[:lanes] = np.inf
+        hi[:lanes] = 0.0
         for start in range(first[m], last[m], block):
             stop = min(start + block, last[m])
             px, py, pz = facets[0, start:stop], facets[1, start:stop], facets[2, start:stop]
             for k in range(px.shape[0]):
                 dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
-                r2[k] = dx * dx + dy * dy + dz * dz
-            for k in range(px.shape[0]):
-                lo[k] = min(lo[k], r2[k])
-                hi[k] = max(hi[k], r2[k])
+                r2 = dx * dx + dy * dy + dz * dz
+                lo[k] = min(lo[k], r2)
+                hi[k] = max(hi[k], r2)
         a, b = lo[0], hi[0]
-        for k in range(1, min(block, max(last[m] - first[m], 1))):  # the lanes above were not filled
+        for k in range(1, lanes):
             a = min(a, lo[k])
             b = max(b, hi[k])
-        empty = last[m] <= first[m]
-        low[m] = 0.0 if empty else math.sqrt(max(a, _TINY))
-        high[m] = 0.0 if empty else math.sqrt(max(b, _TINY))
+        low[m] = math.sqrt(max(a, _TINY))
+        high[m] = math.sqrt(max(b, _TINY))
 
 
 @njit(**_KERNEL_OPTIONS)
