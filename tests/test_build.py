@@ -362,3 +362,20 @@ def test_a_stage_that_stops_the_build_stops_the_stages_beside_it(tmp_path):
     assert len(list((tmp_path / "c").glob("c-*.json"))) < 20
     with pytest.raises(RuntimeError, match="names a stage that does not run before it"):
         run_stages(Context(out=tmp_path, recipe=None), {"b": _toy_stage("b", [0.0], after=("b",))}, Results(), pool)
+
+
+def test_a_local_dask_cluster_keeps_its_periodic_work_off_the_items():
+    """The LocalCluster's workers run without Dask's statistical profiler, 20 ms tick and 0.5 s system monitor
+    (runner.QUIET_DASK): they sample and wake under the GIL of the item's thread."""
+    import dask
+
+    from meshsar_builder.pipeline.runner import QUIET_DASK, DaskPool
+
+    def settings():
+        return {key: dask.config.get(key) for key in QUIET_DASK}
+
+    pool = DaskPool("local:1")
+    try:
+        assert list(pool.client.run(settings).values()) == [QUIET_DASK]
+    finally:
+        pool.close()
