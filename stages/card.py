@@ -162,9 +162,10 @@ def motion_section(ctx: Context, track: dict, tracks: list, folder) -> list[str]
 def run(ctx: Context, item: Item) -> dict:
     """One figure of the card: its file(s), and its section's lines for README.md (finish)."""
     folder = ctx.stage_dir(NAME)
-    if item.id == "gallery":
-        lines = gallery_section(ctx, read_json(ctx.out / INDEX_NAME), folder)
-    elif item.id == "speckle":
+    if item.id == "gallery":  # and which samples it shows
+        index = read_json(ctx.out / INDEX_NAME)
+        return {"lines": gallery_section(ctx, index, folder), "gallery": card.gallery_ids(index, GALLERY)}
+    if item.id == "speckle":
         lines = speckle_section(ctx, read_json(ctx.out / INDEX_NAME), item.data["track"], folder)
     elif item.id == "shape-model":
         lines = shape_model_section(ctx, folder)
