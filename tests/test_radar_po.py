@@ -273,3 +273,24 @@ def test_centroid_model_is_kept_as_an_option():
     centroid = RE.echo(mesh.triangles, np.ones(len(areas)), positions, freqs, dataclasses.replace(radar, facet="centroid"))
     np.testing.assert_array_equal(centroid, RE.point_echo(centres, normals, areas, positions, freqs, radar))
     assert relative_error(RE.echo(mesh.triangles, np.ones(len(areas)), positions, freqs, radar), centroid) > 0.05
+
+
+def test_factorised_echo_falls_back_to_the_direct_sum_on_a_long_range_span():
+    """Facets and a scatterer from 0.3 m to 3 m on an aperture grid: the factorised call hands back to the direct
+    sum, for the whole echo and for the diffuse part alone on a sub-grid."""
+    from meshsar_builder.radar.diffuse import lambert
+
+    radar = RP.RadarParams(aperture=(4, 3), z0_mm=3000.0, n_samples=64, echo_decimation=(1, 1, 1),
+                           loss_decimation=(1, 1, 1))
+    tri = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 4.0], [4.0, 0.0, 0.0]],
+                    [[0.0, 2700.0, 0.0], [0.0, 2700.0, 4.0], [4.0, 2700.0, 0.0]]])
+    diffuse = (np.array([[10.0, -40.0, 5.0]]), np.array([[0.0, 1.0, 0.0]]), np.array([0.5 + 0.2j]), lambert(radar))
+    grid, freqs = RP.aperture(radar, "anterior"), RP.frequencies(radar)
+    sub = (np.array([1, 3]), np.array([0, 2]), np.arange(0, 64, 4))
+    with pytest.warns(UserWarning, match="range span of .* mm needs"):
+        whole, alone = RE.echo(tri, np.ones(2), grid, freqs, radar, diffuse=diffuse, diffuse_on=sub)
+    direct = RE.echo(tri, np.ones(2), grid, freqs, radar, method="direct", diffuse=diffuse)
+    assert relative_error(whole, direct) <= 1e-12
+    there = RP.Aperture(grid.frame, grid.z0_mm, np.asarray(grid.x_mm)[sub[0]], np.asarray(grid.y_mm)[sub[1]])
+    expected = RE.point_echo(*diffuse[:3], there.positions, freqs[sub[2]], diffuse[3], method="direct")
+    assert relative_error(alone, expected) <= 1e-12

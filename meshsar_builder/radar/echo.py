@@ -55,7 +55,10 @@ def _summed(parts, positions, freqs, method, radar, last_on=None):
         empty = np.zeros((len(positions), len(freqs)), dtype=np.complex128)
         return empty if last_on is None else (empty, np.zeros((len(sub.positions), len(i_freq)), dtype=np.complex128))
     if method == "factorised" and grid is not None and any(part[3] is not None for part in parts):
-        return echo_factorised(parts, grid, freqs, last_on)
+        factorised = echo_factorised(parts, grid, freqs, last_on)
+        if factorised is not None:
+            return factorised
+        method = "direct"  # a range span too wide for the series (warned)
     summer = _echo_direct if method == "direct" else _echo_chebyshev
     whole = sum(summer(*part[:4], positions, freqs, part[4]) for part in parts)
     return whole if last_on is None else (whole, summer(*parts[-1][:4], sub.positions, freqs[i_freq], parts[-1][4]))

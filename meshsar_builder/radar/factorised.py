@@ -192,7 +192,8 @@ def echo_factorised(parts, grid, freqs, last_on=None):
     parts : tuples (points, normals, weights, offsets, radar) of one kind each: facets
     (offsets (K, 3, 3)) or point scatterers (offsets None), radar giving their pattern.
     The parts share the clusters, so one interpolation serves them all. Returns (Nx Ny, N)
-    complex128.
+    complex128; None where a cluster's range span is too wide for the series (then the direct
+    sum is the faster one).
 
     last_on : (ix, iy, i_freq) int index arrays of a sub-grid of the aperture's axes and of
     freqs (uniformly spaced): then also the last part's echo alone there, (len(ix) len(iy),
@@ -231,13 +232,7 @@ def echo_factorised(parts, grid, freqs, last_on=None):
         if per_pair._series_echo(rows, per_pair._reach(offsets), grids, np.repeat(stops - counts, sizes),
                                  np.repeat(stops, sizes), freqs, radar, out=summed,
                                  tolerance=None if offsets is not None else POINT_SERIES_TOLERANCE) is None:
-            # a span too wide for the series (warned): the direct sum
-            whole = sum(per_pair._echo_direct(*each[:4], grid.positions, freqs, each[4]) for each in parts)
-            if last_on is None:
-                return whole
-            ix, iy, i_freq = last_on
-            sub = Aperture(frame, grid.z0_mm, x_mm[ix], y_mm[iy]).positions
-            return whole, per_pair._echo_direct(*parts[-1][:4], sub, freqs[i_freq], parts[-1][4])
+            return None  # a span too wide for the series (warned): the caller sums directly
         if i == last and last_on is not None:
             alone = _interpolated(summed, direct, clusters, sizes, frame, grid.z0_mm, x_mm, y_mm, freqs, half_slope,
                                   tuple(np.asarray(index) for index in last_on))
