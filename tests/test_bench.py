@@ -127,9 +127,9 @@ def test_radar_roofline_counts_the_series_it_ran_and_restores_the_echo():
     verts, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     radar = RadarParams(aperture=(6, 6), step_mm=20.0)
     scatterers = draw_scatterers(verts, faces, 0.25, np.random.default_rng(0))
-    before = (RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients, RS.CORNER_GAIN_LIMIT)
+    before = (RS.CHEBYSHEV_TOLERANCE, RS._order_buckets, RS.CORNER_GAIN_LIMIT)
     result = BR.roofline(verts, faces, radar, "anterior", scatterers)
-    assert (RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients, RS.CORNER_GAIN_LIMIT) == before
+    assert (RS.CHEBYSHEV_TOLERANCE, RS._order_buckets, RS.CORNER_GAIN_LIMIT) == before
     for name, (setup, per_term) in (("po", BR.FLOPS_PO), ("diffuse", BR.FLOPS_POINT)):
         row = result[name]
         terms = [t for t, _ in row["terms_and_seconds"]]

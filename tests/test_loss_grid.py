@@ -111,6 +111,18 @@ def test_recorded_echo_is_regenerated_exactly_from_clean_seed_and_sigma(noise):
         assert noisy.tobytes() == recorded[v][at_loss].tobytes()
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2**63 + 5])
+def test_unit_noise_is_the_documented_draw(seed):
+    """A reader of another version regenerates the same noise: pairs of standard normals from default_rng(seed),
+    (real, imaginary) in that order, over sqrt(2), bit for bit (the form the build drew before it was sped up)."""
+    shape = (5, 4, 6)
+    pairs = np.random.default_rng(seed).standard_normal((*shape, 2))
+    documented = (pairs @ np.array([1.0, 1.0j])) / np.sqrt(2)
+    noise = unit_noise(shape, np.uint64(seed))
+    assert noise.dtype == np.complex128 and noise.shape == shape
+    assert noise.tobytes() == documented.tobytes()
+
+
 def test_echo_clean_is_the_noise_free_echo():
     """The same sample without noise: the same echo_clean and seeds, sigma 0, and the recorded echo is the clean one."""
     verts, faces = ellipsoid(2)

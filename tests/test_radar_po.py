@@ -154,6 +154,45 @@ def test_jacobi_anger_coefficients_converge_at_any_span(w_max):
     np.testing.assert_allclose(series, np.exp(1j * omega[:, None] * t[None]), atol=1e-8)
 
 
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(1e-6, 200.0), min_size=1, max_size=300), st.sampled_from([1e-10, 1e-5]))
+def test_order_buckets_cover_each_antenna_with_its_own_series_length(halves, tolerance):
+    """Every antenna's bucket reaches at least its own half-width (so |t| <= 1) with a series long enough for it,
+    the buckets' lengths rise strictly, and none is longer than one length for all antennas would be."""
+    halves = np.array(halves)
+    omega_per_mm = 2 * np.pi * 0.17 / 2
+    bucket, half = RS._order_buckets(halves, omega_per_mm, tolerance)
+    lengths = RS._series_order(omega_per_mm * half, tolerance)
+    assert np.all(half[bucket] >= halves)
+    assert np.all(lengths[bucket] >= RS._series_order(omega_per_mm * halves, tolerance))
+    assert np.all(np.diff(lengths) > 0)
+    assert lengths.max() == RS._series_order(omega_per_mm * halves.max(), tolerance)
+
+
+@pytest.mark.parametrize("tolerance", [None, 1e-5])
+def test_series_with_a_length_per_antenna_matches_the_direct_sum_per_antenna(tolerance):
+    """Antennas summing sets of scatterers whose range spans differ 40-fold, interleaved so that the buckets of
+    series lengths cross the kernel's batches: each antenna's series echo is its own set's direct sum."""
+    radar = RP.RadarParams(aperture=(15, 12), n_samples=32, facet="centroid", echo_decimation=(1, 1, 1))
+    positions, freqs = RP.aperture_positions(radar, "anterior"), RP.frequencies(radar)
+    rng = np.random.default_rng(3)
+    spans = (2.0, 20.0, 80.0)  # mm: each set's extent along the view
+    sets = [rng.uniform(-1, 1, (n, 3)) * [20.0, span / 2, 20.0] for n, span in zip((7, 40, 90), spans)]
+    points = np.concatenate(sets)
+    normals = np.tile([0.0, 1.0, 0.0], (len(points), 1))
+    weights = rng.uniform(0.5, 1.5, len(points)) * np.exp(2j * np.pi * rng.uniform(size=len(points)))
+    stops = np.cumsum([len(one) for one in sets])
+    which = rng.integers(0, 3, len(positions))
+    first, last = (stops - [len(one) for one in sets])[which], stops[which]
+    rows = RS._kernel_rows(points, normals, weights, None)
+    series = RS._series_echo(rows, positions, first, last, freqs, radar, tolerance=tolerance)
+    for i, one in enumerate(sets):
+        mine = which == i
+        direct = RS._echo_direct(points[first[mine][0]:last[mine][0]], normals[:len(one)],
+                                 weights[first[mine][0]:last[mine][0]], None, positions[mine], freqs, radar)
+        assert relative_error(series[mine], direct) <= (1e-9 if tolerance is None else 1e-5)
+
+
 # ------------------------------------------------------------------ canonical targets
 
 

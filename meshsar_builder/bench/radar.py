@@ -187,7 +187,7 @@ def gpu_targets(views: list[dict]) -> dict:
 # Floating-point operations per antenna-scatterer pair of the production kernel
 # (radar.series._chebyshev_echo), counted from its source with a multiply-add as 2 and a
 # square root, division, min or max as 1 (they take more cycles; the measured rate absorbs
-# that). L is the number of Chebyshev terms.
+# that). L is the number of Chebyshev terms (the mean over antennas, each with its own length).
 # Facet integral: the distance, cos theta and two corner projections (32), the lobe at an
 # integer p (6), the amplitude, delay, the three corner weights and the cancellation test
 # (37), per corner its phase and cos / sin polynomials, weights and Chebyshev argument (52);
@@ -238,17 +238,17 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
         "diffuse": (lambda: RE.point_echo(*lit, positions, freqs, RD.lambert(radar)), len(lit[2]), FLOPS_POINT,
                     BYTES_POINT),
     }
-    default_tolerance, coefficients = RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients
-    used = []  # the series' length of each call, as the kernel gets it
+    default_tolerance, buckets = RS.CHEBYSHEV_TOLERANCE, RS._order_buckets
+    used = []  # each call's series length, the mean over its antennas (each of which sums every item here)
 
-    def recording(omega, tolerance):
-        coef = coefficients(omega, tolerance)
-        used.append(len(coef))
-        return coef
+    def recording(halves, omega_per_mm, tolerance):
+        bucket, half = buckets(halves, omega_per_mm, tolerance)
+        used.append(float(np.mean(RS._series_order(omega_per_mm * half, tolerance)[bucket])))
+        return bucket, half
 
     out = {"view": view, "antennas": len(positions), "frequencies": len(freqs)}
     try:
-        RS._chebyshev_coefficients = recording
+        RS._order_buckets = recording
         for name, (run, count, (setup_flops, term_flops), pair_bytes) in cases.items():
             pairs = count * len(positions)
             rows = []
@@ -258,7 +258,7 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
                 rows.append((used[-1], seconds))
             terms, seconds = np.array(rows, dtype=float).T
             per_term = np.polyfit(terms, seconds / pairs, 1)[0]  # seconds per pair and term
-            full = int(terms[-1])
+            full = float(terms[-1])
             flops = setup_flops + term_flops * (full - 2)
             series = per_term * (full - 2)  # seconds per pair in the terms beyond l = 1
             out[name] = {
@@ -268,10 +268,10 @@ def roofline(verts, faces, radar, view: str, scatterers) -> dict:
                 "series_share": series * pairs / seconds[-1],
                 "setup_gflops": setup_flops / (seconds[-1] / pairs - series) / 1e9,
                 "series_gflops": term_flops / per_term / 1e9,
-                "terms_and_seconds": [[int(a), float(b)] for a, b in rows],
+                "terms_and_seconds": [[float(a), float(b)] for a, b in rows],
             }
     finally:
-        RS.CHEBYSHEV_TOLERANCE, RS._chebyshev_coefficients = default_tolerance, coefficients
+        RS.CHEBYSHEV_TOLERANCE, RS._order_buckets = default_tolerance, buckets
     gain = RS.CORNER_GAIN_LIMIT
     try:
         RS.CORNER_GAIN_LIMIT = math.inf
@@ -303,7 +303,7 @@ def factorised_profile(verts, faces, radar, view: str) -> dict:
         start = time.perf_counter()
         out = series(*args, **kwargs)
         timed["seconds"] = min(timed.get("seconds", math.inf), time.perf_counter() - start)
-        timed["pairs"], timed["antennas"] = int((args[4] - args[3]).sum()), len(args[2])
+        timed["pairs"], timed["antennas"] = int((args[3] - args[2]).sum()), len(args[1])
         return out
 
     try:

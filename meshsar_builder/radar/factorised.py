@@ -6,6 +6,7 @@ onto the aperture; radar.echo.echo calls it for echo_method "factorised".
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -79,6 +80,20 @@ def _barycentric(nodes: np.ndarray, axis: np.ndarray) -> np.ndarray:
     matrix /= matrix.sum(axis=1, keepdims=True)
     on_node = hit.any(axis=1)
     matrix[on_node] = hit[on_node]
+    return matrix
+
+
+def _interpolation(nodes: np.ndarray, axis: np.ndarray, transposed: bool = False) -> np.ndarray:
+    """_barycentric(nodes, axis) in float32, read-only (its transpose, contiguous, with transposed), cached: the
+    clusters of a build share their node counts and axes, so their matrices (8 ms a view to build afresh)."""
+    return _cached_interpolation(nodes.tobytes(), axis.tobytes(), transposed)
+
+
+@functools.lru_cache(maxsize=512)
+def _cached_interpolation(nodes: bytes, axis: bytes, transposed: bool) -> np.ndarray:
+    matrix = _barycentric(np.frombuffer(nodes), np.frombuffer(axis))
+    matrix = np.ascontiguousarray(matrix.T if transposed else matrix, dtype=np.float32)
+    matrix.flags.writeable = False
     return matrix
 
 
@@ -229,7 +244,7 @@ def echo_factorised(parts, grid, freqs, last_on=None):
         order = np.concatenate(mine)
         rows = per_pair._kernel_rows(points[order], normals[order], weights[order],
                                      None if offsets is None else offsets[order])
-        if per_pair._series_echo(rows, per_pair._reach(offsets), grids, np.repeat(stops - counts, sizes),
+        if per_pair._series_echo(rows, grids, np.repeat(stops - counts, sizes),
                                  np.repeat(stops, sizes), freqs, radar, out=summed,
                                  tolerance=None if offsets is not None else POINT_SERIES_TOLERANCE) is None:
             return None  # a span too wide for the series (warned): the caller sums directly
@@ -262,8 +277,8 @@ def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, fre
     for centre, _, node_x, node_y in clusters:
         qx, qy = len(node_x), len(node_y)
         _spread_cluster(summed[start:start + qx * qy, i_freq], node_x, node_y,
-                        _barycentric(node_x, x_sub).astype(np.float32),  # each row on its own: a sub-grid's rows
-                        np.ascontiguousarray(_barycentric(node_y, y_sub).T, dtype=np.float32), centre,
+                        _interpolation(node_x, x_sub),  # each row on its own: a sub-grid's rows
+                        _interpolation(node_y, y_sub, transposed=True), centre,
                         frame, float(z0_mm), x_sub, y_sub, float(f_sub[0]), df, half_slope, tau_per_mm, out)
         start += qx * qy
     out = out.reshape(lx, lf, 2, ly)

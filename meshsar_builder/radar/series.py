@@ -106,13 +106,14 @@ def _echo_direct(points, normals, weights, offsets, positions, freqs, radar):
 # For antenna m, with n' = n - (N - 1)/2 and f_c the centre frequency,
 #     s(m, n) = sum_k c_k exp(j 2 pi x_k n'),  c_k = A_k exp(j 2 pi tau_k (f_c - S tau_k / 2) [rvp]),
 # x_k = df tau_k = beta R_k cycles per sample (beta = df 2e-3 / c per mm). With R_k = R_m + h t_k,
-# R_m the middle of antenna m's range interval and h the largest half-width over antennas
-# (so |t_k| <= 1), Jacobi-Anger gives exp(j w t) = sum_l eps_l j^l J_l(w) T_l(t) (eps_0 = 1,
+# R_m the middle of antenna m's range interval and h the largest half-width over the antennas of
+# m's bucket (so |t_k| <= 1; antennas are bucketed by the series length their own span needs,
+# _order_buckets), Jacobi-Anger gives exp(j w t) = sum_l eps_l j^l J_l(w) T_l(t) (eps_0 = 1,
 # else 2), hence
 #     s(m, n) = exp(j 2 pi beta R_m n') sum_l G_l(m) B_l(n'),  G_l(m) = sum_k c_k T_l(t_k),
 #     B_l(n') = eps_l j^l J_l(2 pi beta h n').
-# The series is cut at the first L whose tail sum_{l >= L} eps_l |J_l(w_max)| is below
-# CHEBYSHEV_TOLERANCE, which bounds each term's relative error. The echo is band-limited
+# The series is cut, per bucket, at the first L whose tail sum_{l >= L} eps_l |J_l(w_max)| is
+# below CHEBYSHEV_TOLERANCE, which bounds each term's relative error. The echo is band-limited
 # (the mesh spans a few range cells), so ~14 terms replace the N = 64 samples, and each
 # costs a few real flops per antenna-facet pair; T_l comes from the three-term recurrence.
 #
@@ -194,9 +195,10 @@ def _integer_power(x, p_int):
 
 
 @njit(**_KERNEL_OPTIONS)
-def _range_bounds(facets, positions, first, last, low, high):
-    """Per antenna m, the least and greatest distance (mm) to the points of facets first[m]:last[m], into low,
-    high (M,); 0 and 0 for an antenna with none."""
+def _range_bounds(facets, reach, positions, first, last, low, high):
+    """Per antenna m, the least and greatest range (mm) of the points of items first[m]:last[m], into low, high
+    (M,): an item's distance from the antenna less and plus its reach (K,) (how far a facet's corners' ranges
+    can lie from its centre's; 0 for points); 0 and 0 for an antenna with none."""
     block = LANES
     lo = np.empty(block)
     hi = np.empty(block)
@@ -208,47 +210,50 @@ def _range_bounds(facets, positions, first, last, low, high):
         ax, ay, az = positions[m, 0], positions[m, 1], positions[m, 2]
         lanes = min(block, last[m] - first[m])  # only these are filled: a cluster's antenna sums ~100 items
         lo[:lanes] = np.inf
-        hi[:lanes] = 0.0
+        hi[:lanes] = -np.inf
         for start in range(first[m], last[m], block):
             stop = min(start + block, last[m])
-            px, py, pz = facets[0, start:stop], facets[1, start:stop], facets[2, start:stop]
+            px, py, pz, spread = facets[0, start:stop], facets[1, start:stop], facets[2, start:stop], reach[start:stop]
             for k in range(px.shape[0]):
                 dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
-                r2 = dx * dx + dy * dy + dz * dz
-                lo[k] = min(lo[k], r2)
-                hi[k] = max(hi[k], r2)
+                r = math.sqrt(dx * dx + dy * dy + dz * dz)
+                lo[k] = min(lo[k], r - spread[k])
+                hi[k] = max(hi[k], r + spread[k])
         a, b = lo[0], hi[0]
         for k in range(1, lanes):
             a = min(a, lo[k])
             b = max(b, hi[k])
-        low[m] = math.sqrt(max(a, _TINY))
-        high[m] = math.sqrt(max(b, _TINY))
+        low[m] = a
+        high[m] = b
 
 
 @njit(**_KERNEL_OPTIONS)
-def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_per_mm, f_centre, half_slope, p, p_int,
-                    kappa, flag_limit, coef_even, coef_odd, cycles_per_mm, n_centre, freqs, wavenumbers, factor,
-                    reflectivity, out):
+def _chebyshev_echo(facets, positions, first, last, sequence, bucket, centre_mm, inv_half_mm, terms, tau_per_mm,
+                    f_centre, half_slope, p, p_int, kappa, flag_limit, coef_even, coef_odd, cycles_per_mm, n_centre,
+                    freqs, wavenumbers, factor, reflectivity, out):
     """Echo of every antenna added to out (M, 2 N) float64 (a complex128 (M, N) viewed as floats).
 
     facets : (8, K) rows x, y, z, nx, ny, nz, |weight|, arg(weight) / 2 pi (cycles) for point
     scatterers, or (13, K) rows x, ..., weight and the corner offsets p_0 - c, p_1 - c (rows
     7-12) for the facet integral; antenna m sums facets first[m]:last[m] (M,); centre_mm : (M,) R_m;
-    coef_even : (ceil(L / 2), N) B_l(n') of the even l, real; coef_odd : (floor(L / 2), N) B_l(n') / j
-    of the odd l, real; freqs, wavenumbers (rad/mm), factor, reflectivity : (N,): each finished row
+    the antennas go in the order sequence (M,), grouped by their series bucket[m] (M,) (see _order_buckets), whose
+    half-width is 1 / inv_half_mm[q] and length terms[q] (Q,); coef_even : (Q, ceil(L / 2), N) B_l(n') of the even
+    l, real; coef_odd : (Q, max(floor(L / 2), 1), N) B_l(n') / j of the odd l, real, each zero beyond the bucket's
+    own terms (L the longest); freqs, wavenumbers (rad/mm), factor, reflectivity : (N,): each finished row
     is multiplied by factor, and a pair added exactly carries reflectivity. p_int >= 0: the lobe
     power p is that integer (< 16), done by products.
     """
     po = facets.shape[0] == 13
     n_facets = facets.shape[1]
     per_block = LANES // 3 if po else LANES
-    n_even, n_samples = coef_even.shape
-    n_odd = coef_odd.shape[0]
-    n_terms = n_even + n_odd
+    _, n_even, n_samples = coef_even.shape
+    n_odd = coef_odd.shape[1]
+    longest = terms.max()
     # G_l of SERIES_BATCH antennas, real parts in rows b and imaginary parts in rows SERIES_BATCH + b, and the
     # pairs added exactly: the product with B_l runs once a batch is full, as two real matrix products (BLAS)
     g_even = np.zeros((2 * SERIES_BATCH, n_even))
-    g_odd = np.zeros((2 * SERIES_BATCH, max(n_odd, 1)))
+    g_odd = np.zeros((2 * SERIES_BATCH, n_odd))
+    members = np.empty(SERIES_BATCH, dtype=np.int64)  # the batch's antennas
     exact_rows = np.empty((SERIES_BATCH, 2 * n_samples))
     dist = np.empty(per_block)
     cos_theta = np.empty(per_block)
@@ -261,14 +266,18 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
     c_im = np.zeros(LANES)
     t_even = np.empty(LANES)  # T_l(t) of the last even l, then of the last odd l
     t_odd = np.empty(LANES)
-    acc_re = np.empty((n_terms, WIDTH))  # per lane partial sums of G_l
-    acc_im = np.empty((n_terms, WIDTH))
+    acc_re = np.empty((longest, WIDTH))  # per lane partial sums of G_l
+    acc_im = np.empty((longest, WIDTH))
     d_re = np.empty(n_samples)
     d_im = np.empty(n_samples)
     flagged = np.empty(n_facets, dtype=np.int64)
     work = np.empty(SERIES_TERMS)
     k_max = wavenumbers.max()
-    for m in range(positions.shape[0]):
+    b = 0  # the antenna's row in the batch
+    for i_antenna in range(positions.shape[0]):
+        m = sequence[i_antenna]
+        own = bucket[m]
+        n_terms, inv_half = terms[own], inv_half_mm[own]
         ax, ay, az, r_m = positions[m, 0], positions[m, 1], positions[m, 2], centre_mm[m]
         acc_re[:] = 0.0
         acc_im[:] = 0.0
@@ -323,15 +332,15 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                     cos, sin = _cos_sin((tau + 0.5 * b0 * tau_per_mm) * f_centre - rvp)
                     c_re[k] = w0 * cos
                     c_im[k] = w0 * sin
-                    t[k] = (r + 0.5 * b0 - r_m) * inv_half_mm
+                    t[k] = (r + 0.5 * b0 - r_m) * inv_half
                     cos, sin = _cos_sin((tau + 0.5 * b1 * tau_per_mm) * f_centre - rvp)
                     c_re[k + size] = w1 * cos
                     c_im[k + size] = w1 * sin
-                    t[k + size] = (r + 0.5 * b1 - r_m) * inv_half_mm
+                    t[k + size] = (r + 0.5 * b1 - r_m) * inv_half
                     cos, sin = _cos_sin((tau + 0.5 * b2 * tau_per_mm) * f_centre - rvp)
                     c_re[k + 2 * size] = w2 * cos
                     c_im[k + 2 * size] = w2 * sin
-                    t[k + 2 * size] = (r + 0.5 * b2 - r_m) * inv_half_mm
+                    t[k + 2 * size] = (r + 0.5 * b2 - r_m) * inv_half
                 for k in range(size):  # scalar, rare: the pairs to add exactly
                     if exact[k] != 0.0:
                         flagged[n_flagged] = start + k
@@ -346,7 +355,7 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                     cos, sin = _cos_sin(tau * (f_centre - half_slope * tau) + phase[k])
                     c_re[k] = amp * cos
                     c_im[k] = amp * sin
-                    t[k] = (r - r_m) * inv_half_mm
+                    t[k] = (r - r_m) * inv_half
             padded = -(-size // WIDTH) * WIDTH
             for k in range(size, padded):  # zero weights: they add exactly 0
                 c_re[k] = 0.0
@@ -395,7 +404,11 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                 for k in range(width):
                     lane_re[k] += lane_re[k + width]
                     lane_im[k] += lane_im[k + width]
-        b = m % SERIES_BATCH
+        members[b] = m
+        g_even[b] = 0.0  # the terms beyond this bucket's meet zero coefficients
+        g_even[SERIES_BATCH + b] = 0.0
+        g_odd[b] = 0.0
+        g_odd[SERIES_BATCH + b] = 0.0
         for l in range(n_terms):
             g = g_even if l % 2 == 0 else g_odd
             g[b, l // 2] = acc_re[l, 0]
@@ -423,12 +436,14 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                 term = amp * reflectivity[n] * dd
                 row[2 * n] += term.real * cos - term.imag * sin
                 row[2 * n + 1] += term.real * sin + term.imag * cos
-        if b == SERIES_BATCH - 1 or m == positions.shape[0] - 1:
+        last_of_batch = (b == SERIES_BATCH - 1 or i_antenna == positions.shape[0] - 1
+                         or bucket[sequence[i_antenna + 1]] != own)  # a batch shares its bucket's coefficients
+        if last_of_batch:
             # s = sum_l G_l B_l = sum over even l of G_l B_l + j sum over odd l of G_l (B_l / j), each real
-            s_even = np.dot(g_even, coef_even)  # (2 SERIES_BATCH, N): rows b real, SERIES_BATCH + b imaginary
-            s_odd = np.dot(g_odd, coef_odd) if n_odd else np.zeros_like(s_even)
+            s_even = np.dot(g_even, coef_even[own])  # (2 SERIES_BATCH, N): rows b real, SERIES_BATCH + b imaginary
+            s_odd = np.dot(g_odd, coef_odd[own])
             for a in range(b + 1):
-                m_a = m - b + a
+                m_a = members[a]
                 shift = centre_mm[m_a] * cycles_per_mm  # demodulate: exp(j 2 pi x_m n'), then the common factor
                 for n in range(n_samples):
                     cos, sin = _cos_sin(shift * (n - n_centre))
@@ -441,6 +456,9 @@ def _chebyshev_echo(facets, positions, first, last, centre_mm, inv_half_mm, tau_
                     s_im = e_im[n] + o_re[n]
                     row[2 * n] += (s_re * d_re[n] - s_im * d_im[n]) + exact_row[2 * n]
                     row[2 * n + 1] += (s_re * d_im[n] + s_im * d_re[n]) + exact_row[2 * n + 1]
+            b = 0
+        else:
+            b += 1
 
 
 def _series_order(w_max, tolerance: float):
@@ -501,30 +519,37 @@ def _kernel_rows(points, normals, weights, offsets) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate(rows))
 
 
-def _series_echo(rows, reach, positions, first, last, freqs, radar, out=None, tolerance=None):
+def _series_echo(rows, positions, first, last, freqs, radar, out=None, tolerance=None):
     """(M, N) complex128: antenna m's echo of the kernel rows first[m]:last[m], added to out (default zeros);
     None, out untouched, where the series would need more terms than there are frequency samples (then the
     direct sum is faster).
 
-    reach : how far (mm) a corner's range can lie from its facet centre's (0 for points); tolerance : the
-    series' truncation (default CHEBYSHEV_TOLERANCE, read at the call, as the bench varies it).
+    tolerance : the series' truncation (default CHEBYSHEV_TOLERANCE, read at the call, as the bench varies it).
     """
     n = len(freqs)
     df = _uniform_step(freqs)
     positions = np.ascontiguousarray(positions)
     low, high = np.empty(len(positions)), np.empty(len(positions))
-    _range_bounds(rows, positions, first, last, low, high)
+    _range_bounds(rows, _item_reach(rows), positions, first, last, low, high)
     centre = (low + high) / 2
-    half = max(float(np.max(high - low)) / 2 + reach, 1e-6)  # mm; a floor for a single range
     tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
     cycles_per_mm = df * tau_per_mm
     n_centre = (n - 1) / 2
-    coef = _chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre),
-                                   CHEBYSHEV_TOLERANCE if tolerance is None else tolerance)
-    if len(coef) > n:
-        warnings.warn(f"chebyshev echo: a range span of {2 * half:.0f} mm needs {len(coef)} series terms for "
-                      f"{n} frequency samples; using the direct sum", stacklevel=4)
+    tolerance = CHEBYSHEV_TOLERANCE if tolerance is None else tolerance
+    halves = np.maximum((high - low) / 2, 1e-6)  # mm; a floor for a single range
+    bucket, halves = _order_buckets(halves, 2 * np.pi * cycles_per_mm * n_centre, tolerance)
+    coefs = [_chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre), tolerance)
+             for half in halves]
+    terms = np.array([len(coef) for coef in coefs])
+    if terms.max() > n:
+        warnings.warn(f"chebyshev echo: a range span of {2 * halves.max():.0f} mm needs {terms.max()} series terms "
+                      f"for {n} frequency samples; using the direct sum", stacklevel=4)
         return None
+    coef_even = np.zeros((len(coefs), (terms.max() + 1) // 2, n))
+    coef_odd = np.zeros((len(coefs), max(terms.max() // 2, 1), n))
+    for q, coef in enumerate(coefs):
+        coef_even[q, :len(coef[0::2])] = coef.real[0::2]
+        coef_odd[q, :len(coef[1::2])] = coef.imag[1::2]
     p, kappa = _pattern(radar)
     p_int = int(p) if float(p).is_integer() and p < 16 else -1
     wavenumbers = _wavenumbers(freqs)
@@ -533,15 +558,49 @@ def _series_echo(rows, reach, positions, first, last, freqs, radar, out=None, to
     factor = reflectivity / wavenumbers**2 if facets else reflectivity
     flag_limit = 2.0 / (CORNER_GAIN_LIMIT * float(wavenumbers.min()) ** 2)
     out = np.zeros((len(positions), n), dtype=np.complex128) if out is None else out
-    _chebyshev_echo(rows, positions, first, last, centre, 1.0 / half, tau_per_mm, freqs[0] + df * n_centre,
-                    0.5 * radar.slope_hz_per_s if radar.rvp else 0.0, float(p), p_int, float(kappa), flag_limit,
-                    np.ascontiguousarray(coef.real[0::2]), np.ascontiguousarray(coef.imag[1::2]), cycles_per_mm,
-                    n_centre, freqs, wavenumbers, factor, reflectivity, out.view(np.float64))
+    _chebyshev_echo(rows, positions, first, last, np.argsort(bucket, kind="stable"), bucket, centre, 1.0 / halves,
+                    terms, tau_per_mm, freqs[0] + df * n_centre, 0.5 * radar.slope_hz_per_s if radar.rvp else 0.0,
+                    float(p), p_int, float(kappa), flag_limit, coef_even, coef_odd, cycles_per_mm, n_centre, freqs,
+                    wavenumbers, factor, reflectivity, out.view(np.float64))
     return out
 
 
-def _reach(offsets) -> float:
-    return 0.0 if offsets is None else float(np.linalg.norm(offsets, axis=2).max())
+# Antenna range half-widths per bucket of _order_buckets: their largest over this many equal steps.
+ORDER_STEPS = 64
+
+
+def _order_buckets(halves: np.ndarray, omega_per_mm: float, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Antennas grouped by the series length their own range span needs: (bucket (M,) int, half (Q,) float mm).
+
+    halves : (M,) float mm, each antenna's range half-width (over its items' corners);
+    omega_per_mm : the series' largest argument per mm of half-width. Each bucket's half is the largest of its
+    antennas' (so |t| <= 1 for all of them) and the buckets' series lengths differ, in increasing order. The
+    half-widths are first pooled over ORDER_STEPS equal steps (one Bessel call for all), then steps whose lengths
+    are equal are merged. Measured on the demo heart's factorised echo: the pairs' mean length 12.7-13.1 terms
+    against 14-15 for one length for all antennas (facets), 7.1-7.3 against 8-9 (the diffuse part).
+    """
+    step = np.minimum((halves * (ORDER_STEPS / halves.max())).astype(np.intp), ORDER_STEPS - 1)
+    top = np.zeros(ORDER_STEPS)  # each step's largest half-width (0 where none falls)
+    np.maximum.at(top, step, halves)
+    used = np.flatnonzero(top)
+    lengths, bucket_of_used = np.unique(_series_order(omega_per_mm * top[used], tolerance), return_inverse=True)
+    half = np.zeros(len(lengths))
+    np.maximum.at(half, bucket_of_used, top[used])
+    bucket_of_step = np.zeros(ORDER_STEPS, dtype=np.int8)  # int8: the kernel's visiting order is a radix sort
+    bucket_of_step[used] = bucket_of_used
+    return bucket_of_step[step], half
+
+
+def _item_reach(rows: np.ndarray) -> np.ndarray:
+    """(K,) how far (mm) each item's corners lie from its centre, an upper bound on how far their ranges can lie
+    from its centre's (|b_i| / 2 <= |p_i - c|): of the facet rows' corner offsets (the third is minus the sum of
+    the other two), 0 for points. Per facet, not the largest over them: on the demo heart the largest is 7.7 mm
+    and the median 2.0 mm, and it widens every antenna's range span twice over."""
+    if rows.shape[0] != 13:
+        return np.zeros(rows.shape[1])
+    first, second = rows[7:10], rows[10:13]
+    return np.sqrt(np.max([np.sum(first**2, axis=0), np.sum(second**2, axis=0), np.sum((first + second) ** 2, axis=0)],
+                          axis=0))
 
 
 def _echo_chebyshev(points, normals, weights, offsets, positions, freqs, radar):
@@ -550,6 +609,5 @@ def _echo_chebyshev(points, normals, weights, offsets, positions, freqs, radar):
     if _NUMBA_MISSING:
         raise MeshsarError(_NUMBA_MISSING)
     first, last = np.zeros(len(positions), dtype=np.int64), np.full(len(positions), len(points), dtype=np.int64)
-    out = _series_echo(_kernel_rows(points, normals, weights, offsets), _reach(offsets), positions, first, last,
-                       freqs, radar)
+    out = _series_echo(_kernel_rows(points, normals, weights, offsets), positions, first, last, freqs, radar)
     return _echo_direct(points, normals, weights, offsets, positions, freqs, radar) if out is None else out
