@@ -170,5 +170,6 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 9: diffuse_power from the diffuse part's own sums on the factorised clusters, interpolated onto the stored
 # echo grid (1e-5 of its series sum on the demo heart; the echo's bytes unchanged), and no `diffuse` seconds of its own.
 # Version 10: each antenna's series as long as its own range span needs (radar.series._order_buckets), not the
-# longest over the aperture: echoes differ within the series' tolerance (4.5e-7 relative on a demo sample's stored echo).
+# longest over the aperture: echoes differ within the series' tolerance (4.5e-7 relative, a demo sample's stored
+# echo).
 STAGE = Stage(name=NAME, version=10, plan=plan, run=run, resources=resources, check=check)

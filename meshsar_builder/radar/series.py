@@ -138,18 +138,8 @@ def _echo_direct(points, normals, weights, offsets, positions, freqs, radar):
 # across threads by rows and columns, never along its sum, so the bytes do not depend on
 # thread counts; they depend on the BLAS build, as the factorised echo's interpolation does.
 #
-# Measured for the centroid model on one core in one run (2-core machine shared with other
-# jobs; min of 3): 6,400 antennas x 3,460-3,696 visible facets x 64 samples, the three
-# default views of the 100 x 80 x 120 mm ellipsoid, against the direct sum timed on 48
-# antennas and scaled (26-31 s): this 0.14-0.18 s (170-190x; L = 13-14; relative L2 error
-# 2-5e-10); the complex64 baby-step giant-step phasors with a batched BLAS matmul that it
-# replaced 0.61-0.86 s (36-44x, error 8e-7); a float64 phasor recurrence re-anchored every
-# 32 samples, fused and vectorized like this kernel, 0.51-0.60 s (43-57x): 64 complex steps
-# per pair against ~14 real ones. Earlier, on 2,850 facets against 0.38 s for the matmul:
-# FINUFFT 1-D type 1 per antenna (plan reused, eps 1e-6) 0.52 s, mostly per-antenna
-# overhead; FINUFFT 2-D type 1 with the antenna as an on-grid coordinate 0.78 s; Jacobi-Anger
-# in float32 numpy 0.39-0.57 s (memory-bound there). The first call in a process compiles
-# the kernels or loads them from numba's cache in __pycache__.
+# The first call in a process compiles the kernels or loads them from numba's cache in
+# __pycache__. What this kernel replaced, measured: docs/radar.md, design notes.
 
 # Scatterers per block of the vectorized loops; the facet integral fills a block with the
 # three corners of LANES // 3 facets.
@@ -405,10 +395,8 @@ def _chebyshev_echo(facets, positions, first, last, sequence, bucket, centre_mm,
                     lane_re[k] += lane_re[k + width]
                     lane_im[k] += lane_im[k + width]
         members[b] = m
-        g_even[b] = 0.0  # the terms beyond this bucket's meet zero coefficients
-        g_even[SERIES_BATCH + b] = 0.0
-        g_odd[b] = 0.0
-        g_odd[SERIES_BATCH + b] = 0.0
+        g_even[b::SERIES_BATCH] = 0.0  # rows b and SERIES_BATCH + b: terms beyond the bucket's meet zero coefficients
+        g_odd[b::SERIES_BATCH] = 0.0
         for l in range(n_terms):
             g = g_even if l % 2 == 0 else g_odd
             g[b, l // 2] = acc_re[l, 0]
@@ -576,8 +564,7 @@ def _order_buckets(halves: np.ndarray, omega_per_mm: float, tolerance: float) ->
     omega_per_mm : the series' largest argument per mm of half-width. Each bucket's half is the largest of its
     antennas' (so |t| <= 1 for all of them) and the buckets' series lengths differ, in increasing order. The
     half-widths are first pooled over ORDER_STEPS equal steps (one Bessel call for all), then steps whose lengths
-    are equal are merged. Measured on the demo heart's factorised echo: the pairs' mean length 12.7-13.1 terms
-    against 14-15 for one length for all antennas (facets), 7.1-7.3 against 8-9 (the diffuse part).
+    are equal are merged (measured gains: docs/radar.md).
     """
     step = np.minimum((halves * (ORDER_STEPS / halves.max())).astype(np.intp), ORDER_STEPS - 1)
     top = np.zeros(ORDER_STEPS)  # each step's largest half-width (0 where none falls)
