@@ -10,7 +10,13 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from skimage.measure import euler_number
 
-from meshsar_builder.geometry.meshing import MeshingParams, labels_to_surface, signed_distance, trim_vessels
+from meshsar_builder.geometry.meshing import (
+    MeshingParams,
+    labels_to_surface,
+    resample_cubic,
+    signed_distance,
+    trim_vessels,
+)
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError, MeshError
 
@@ -274,3 +280,16 @@ def test_a_short_axis_maps_apical_lv_gap_is_meshed_as_myocardium_and_recorded():
     labels[mask & (y > 12)] = STRUCTURES["la"]
     whole = labels_to_surface(labels, affine, ["lv", "myo", "la"], MeshingParams())
     assert "lv_patches_relabelled" not in whole.repair and (whole.labels[whole.verts[:, 2] < -17] == STRUCTURES["lv"]).any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.tuples(*[st.integers(2, 14)] * 3), st.tuples(*[st.floats(0.1, 2.5)] * 3), st.integers(0, 2**32 - 1))
+def test_separable_cubic_resampling_is_scipys_map_coordinates(shape, steps, seed):
+    """The meshing's resampling, one axis at a time, against scipy's cubic B-spline at every point of the grid
+    (mode "nearest"), on random volumes, anisotropic steps finer and coarser than a voxel."""
+    values = np.random.default_rng(seed).standard_normal(shape) * 20
+    axes = [np.arange(0, n - 1 + 1e-9, step) for n, step in zip(shape, steps)]
+    reference = ndimage.map_coordinates(values, np.meshgrid(*axes, indexing="ij"), order=3, mode="nearest")
+    resampled = resample_cubic(values, axes)
+    assert resampled.shape == reference.shape
+    np.testing.assert_allclose(resampled, reference, rtol=0, atol=1e-11)

@@ -104,6 +104,33 @@ class IsoGrid(NamedTuple):
         return vox @ self.affine[:3, :3].T + self.affine[:3, 3]
 
 
+# Edge padding before the spline filter, as scipy's map_coordinates pads for mode "nearest" (its npad).
+SPLINE_PAD = 12
+
+
+def resample_cubic(values: np.ndarray, axes: list[np.ndarray]) -> np.ndarray:
+    """values (X, Y, Z) float resampled by cubic B-spline onto the grid of axes (3 x (m_i,) fractional voxel
+    positions within [0, n_i - 1]): (m_0, m_1, m_2) float64.
+
+    What ndimage.map_coordinates(values, meshgrid(*axes), order=3, mode="nearest") gives (the same edge padding and
+    prefilter; 4e-15 from it in the tests), but one axis at a time, four taps each, since the grid is a tensor
+    product: a frame of 1.5 x 1.5 x 8 mm voxels onto 1 mm took 0.44 s as 64 taps per point.
+    """
+    out = ndimage.spline_filter(np.pad(values, SPLINE_PAD, mode="edge"), order=3, output=np.float64, mode="nearest")
+    # The axis that grows most last, so the passes before it run on the smaller arrays.
+    for axis in sorted(range(3), key=lambda a: len(axes[a]) / values.shape[a]):
+        x = np.asarray(axes[axis], dtype=np.float64) + SPLINE_PAD
+        first = np.floor(x).astype(np.intp) - 1
+        t = x - first - 1
+        weights = ((1 - t) ** 3 / 6, (3 * t**3 - 6 * t**2 + 4) / 6, (-3 * t**3 + 3 * t**2 + 3 * t + 1) / 6, t**3 / 6)
+        along = np.moveaxis(out, axis, 0)
+        summed = weights[0][:, None, None] * along[first]
+        for tap in (1, 2, 3):
+            summed += weights[tap][:, None, None] * along[first + tap]
+        out = np.moveaxis(summed, 0, axis)
+    return out
+
+
 def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams) -> IsoGrid:
     """Signed distance of a mask resampled to `spacing_mm` and smoothed: the field meshed at 0.
 
@@ -125,14 +152,12 @@ def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams) -> Iso
     ]
     sdf = signed_distance(padded, voxel_mm)
     axes = [np.arange(0, n - 1 + 1e-9, s) for n, s in zip(padded.shape, step)]
-    coords = np.meshgrid(*axes, indexing="ij")
     # Cubic B-spline, not linear: across thick slices (5-10 mm short-axis stacks) a linear blend
     # of the distance cuts chords inside a convex surface. Measured at 6/8/10 mm slices: a 30 mm
     # sphere's volume -1.7/-3.1/-3.5 % linear, -1.0/-1.3/-1.4 % cubic; a half-spheroid LV
     # (r 25, L 70, base on a slice boundary) -1.9/-3.0/-4.0 % against -1.2/-1.7/-1.9 %, with
     # the mean distance to the true surface no worse (docs/topology.md).
-    iso = ndimage.map_coordinates(sdf, coords, order=3, mode="nearest").astype(np.float32)
-    del coords
+    iso = resample_cubic(sdf, axes).astype(np.float32)
     if params.sigma_mm > 0:
         iso = ndimage.gaussian_filter(iso, params.sigma_mm / params.spacing_mm, mode="nearest")
     if not (iso.min() < 0 < iso.max()):
