@@ -172,4 +172,6 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 10: each antenna's series as long as its own range span needs (radar.series._order_buckets), not the
 # longest over the aperture: echoes differ within the series' tolerance (4.5e-7 relative, a demo sample's stored
 # echo).
-STAGE = Stage(name=NAME, version=10, plan=plan, run=run, resources=resources, check=check)
+# Version 11: the point scatterers' range bounds from squared distances again (one square root an antenna): echoes
+# may differ in their last bits.
+STAGE = Stage(name=NAME, version=11, plan=plan, run=run, resources=resources, check=check)

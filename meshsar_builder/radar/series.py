@@ -189,7 +189,7 @@ def _range_bounds(facets, reach, positions, first, last, low, high):
     """Per antenna m, the least and greatest range (mm) of the points of items first[m]:last[m], into low, high
     (M,): an item's distance from the antenna less and plus its reach (K,) (how far a facet's corners' ranges
     can lie from its centre's; 0 for points); 0 and 0 for an antenna with none."""
-    block = LANES
+    block, po = LANES, facets.shape[0] == 13
     lo = np.empty(block)
     hi = np.empty(block)
     for m in range(positions.shape[0]):
@@ -204,17 +204,22 @@ def _range_bounds(facets, reach, positions, first, last, low, high):
         for start in range(first[m], last[m], block):
             stop = min(start + block, last[m])
             px, py, pz, spread = facets[0, start:stop], facets[1, start:stop], facets[2, start:stop], reach[start:stop]
-            for k in range(px.shape[0]):
-                dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
-                r = math.sqrt(dx * dx + dy * dy + dz * dz)
-                lo[k] = min(lo[k], r - spread[k])
-                hi[k] = max(hi[k], r + spread[k])
+            if po:  # each facet's range less and plus its reach
+                for k in range(px.shape[0]):
+                    dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
+                    r = math.sqrt(dx * dx + dy * dy + dz * dz)
+                    lo[k] = min(lo[k], r - spread[k])
+                    hi[k] = max(hi[k], r + spread[k])
+            else:  # points: squared distances, and one square root an antenna
+                for k in range(px.shape[0]):
+                    dx, dy, dz = ax - px[k], ay - py[k], az - pz[k]
+                    lo[k] = min(lo[k], dx * dx + dy * dy + dz * dz)
+                    hi[k] = max(hi[k], dx * dx + dy * dy + dz * dz)
         a, b = lo[0], hi[0]
         for k in range(1, lanes):
             a = min(a, lo[k])
             b = max(b, hi[k])
-        low[m] = a
-        high[m] = b
+        low[m], high[m] = (a, b) if po else (math.sqrt(a), math.sqrt(b))
 
 
 @njit(**_KERNEL_OPTIONS)
@@ -524,8 +529,7 @@ def _series_echo(rows, positions, first, last, freqs, radar, out=None, tolerance
     cycles_per_mm = df * tau_per_mm
     n_centre = (n - 1) / 2
     tolerance = CHEBYSHEV_TOLERANCE if tolerance is None else tolerance
-    halves = np.maximum((high - low) / 2, 1e-6)  # mm; a floor for a single range
-    bucket, halves = _order_buckets(halves, 2 * np.pi * cycles_per_mm * n_centre, tolerance)
+    bucket, halves = _order_buckets(np.maximum((high - low) / 2, 1e-6), 2 * np.pi * cycles_per_mm * n_centre, tolerance)
     coefs = [_chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre), tolerance)
              for half in halves]
     terms = np.array([len(coef) for coef in coefs])
@@ -560,12 +564,9 @@ ORDER_STEPS = 64
 def _order_buckets(halves: np.ndarray, omega_per_mm: float, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """Antennas grouped by the series length their own range span needs: (bucket (M,) int, half (Q,) float mm).
 
-    halves : (M,) float mm, each antenna's range half-width (over its items' corners);
-    omega_per_mm : the series' largest argument per mm of half-width. Each bucket's half is the largest of its
-    antennas' (so |t| <= 1 for all of them) and the buckets' series lengths differ, in increasing order. The
-    half-widths are first pooled over ORDER_STEPS equal steps (one Bessel call for all), then steps whose lengths
-    are equal are merged (measured gains: docs/radar.md).
-    """
+    halves : (M,) float mm, each antenna's range half-width; omega_per_mm : the series' largest argument per mm of
+    it. A bucket's half is its antennas' largest (so |t| <= 1), the buckets' lengths rise; the half-widths are
+    pooled over ORDER_STEPS equal steps (one Bessel call), then steps of equal length merged (docs/radar.md)."""
     step = np.minimum((halves * (ORDER_STEPS / halves.max())).astype(np.intp), ORDER_STEPS - 1)
     top = np.zeros(ORDER_STEPS)  # each step's largest half-width (0 where none falls)
     np.maximum.at(top, step, halves)
@@ -579,10 +580,9 @@ def _order_buckets(halves: np.ndarray, omega_per_mm: float, tolerance: float) ->
 
 
 def _item_reach(rows: np.ndarray) -> np.ndarray:
-    """(K,) how far (mm) each item's corners lie from its centre, an upper bound on how far their ranges can lie
-    from its centre's (|b_i| / 2 <= |p_i - c|): of the facet rows' corner offsets (the third is minus the sum of
-    the other two), 0 for points. Per facet, not the largest over them: on the demo heart the largest is 7.7 mm
-    and the median 2.0 mm, and it widens every antenna's range span twice over."""
+    """(K,) how far (mm) each facet's corners lie from its centre (the third offset is minus the sum of the other
+    two), which bounds how far their ranges lie from its centre's; 0 for points. Per facet, not the largest (7.7 mm
+    on the demo heart against a median of 2.0): that one widened every antenna's range span."""
     if rows.shape[0] != 13:
         return np.zeros(rows.shape[1])
     first, second = rows[7:10], rows[10:13]
