@@ -8,8 +8,10 @@ RECIPE     ?= manifests/demo.toml
 WORKERS    ?= 2
 PYTEST_ARGS ?=
 # Test processes (pytest-xdist; logical: one per logical CPU); a test file stays on one process, so its module
-# fixtures are built once.
+# fixtures are built once. A crashed process is not replaced: under --dist loadfile xdist 3.8 can wait forever
+# for the replacement's work (pytest-xdist#1378), so the run ends at once and names the test instead.
 TEST_WORKERS ?= logical
+XDIST = -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder --max-worker-restart=0
 
 PY    := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
@@ -28,10 +30,10 @@ dataset: $(STAMP)
 	$(VENV)/bin/meshsar build $(RECIPE) --workers $(WORKERS)
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(XDIST) $(PYTEST_ARGS)
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -q $(XDIST) -m "not slow" $(PYTEST_ARGS)
 
 clean:
 	rm -rf build
