@@ -279,7 +279,9 @@ def specificity_draws(
     training shape (rigidly fitted to the model mean). shapes : (s, n, 3).
     Returns the distances (k, count) and the redraws made.
     """
-    training = np.stack([rigid_fit(shape, model.mean) for shape in np.asarray(shapes, dtype=np.float64)])
+    # C order whatever rigid_fit returns: the kernel keeps one compiled specialisation (numba cache race: radar/jit.py)
+    training = np.ascontiguousarray(np.stack([rigid_fit(shape, model.mean)
+                                              for shape in np.asarray(shapes, dtype=np.float64)]))
     k = len(model.variances)
     distances, redraws = np.empty((k, count)), 0
     for j in range(1, k + 1):

@@ -276,7 +276,8 @@ def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, fre
     df = per_pair._uniform_step(f_sub)
     for centre, _, node_x, node_y in clusters:
         qx, qy = len(node_x), len(node_y)
-        _spread_cluster(summed[start:start + qx * qy, i_freq], node_x, node_y,
+        # contiguous (a sub-grid's strided columns copied): one compiled specialisation (numba cache race: radar/jit.py)
+        _spread_cluster(np.ascontiguousarray(summed[start:start + qx * qy, i_freq]), node_x, node_y,
                         _interpolation(node_x, x_sub),  # each row on its own: a sub-grid's rows
                         _interpolation(node_y, y_sub, transposed=True), centre,
                         frame, float(z0_mm), x_sub, y_sub, float(f_sub[0]), df, half_slope, tau_per_mm, out)
