@@ -45,7 +45,8 @@ def test_kernels_fed_other_memory_layouts_keep_one_specialisation_each():
     specificity_draws(model, np.asfortranarray(shapes), rng, SSMParams(specificity_samples=4), 2)
 
     kernels = cached_kernels()
-    for name in ("meshsar_builder.radar.factorised._spread_cluster", "meshsar_builder.geometry.ssm.nearest_mean_distance"):
+    for name in ("meshsar_builder.radar.factorised._spread_cluster",
+                 "meshsar_builder.geometry.ssm.nearest_mean_distance"):
         assert {t.layout for signature in kernels[name].signatures for t in signature
                 if isinstance(t, types.Array)} == {"C"}, (name, kernels[name].signatures)
     specialised = {name: {tuple(types.unliteral(t) for t in signature) for signature in kernel.signatures}

@@ -143,14 +143,16 @@ def _centre_phases(r, f_first, df, half_slope, tau_per_mm):
 
 
 @njit(**KERNEL_OPTIONS)
-def _spread_cluster(coarse, node_x, node_y, interp_x, interp_y_t, centre, frame, z0, x_mm, y_mm, f_first, df,
-                    half_slope, tau_per_mm, out):
+def _spread_cluster(summed, first_row, columns, node_x, node_y, interp_x, interp_y_t, centre, frame, z0, x_mm, y_mm,
+                    f_first, df, half_slope, tau_per_mm, out):
     """Add one cluster's echo, known on its coarse grid, to every antenna.
 
-    coarse : (qx qy, N) complex, the cluster's echo on its grid (node_x (qx,), node_y (qy,)),
-    node (a, b) in row a qy + b; interp_x : (Nx, qx) float32, interp_y_t : (qy, Ny) float32; centre : (3,)
-    x_c; frame : (3, 3); out : (Nx, 2 N, Ny) float, antenna (i, j)'s real and imaginary parts in
-    out[i, 2n] and out[i, 2n + 1] (so that the loops over j are contiguous). The interpolation
+    summed : (G, N_all) complex, the coarse sums: this cluster's echo on its grid (node_x (qx,), node_y (qy,)) at
+    node (a, b) is row first_row + a qy + b, its frequency k column columns[k] (N,) int (the whole sums and an
+    index, not a strided view of them: one layout, so one compiled variant, as radar/jit.py asks);
+    interp_x : (Nx, qx) float32, interp_y_t : (qy, Ny) float32; centre : (3,) x_c; frame : (3, 3);
+    out : (Nx, 2 N, Ny) float, antenna (i, j)'s real and imaginary parts in out[i, 2n] and out[i, 2n + 1] (so
+    that the loops over j are contiguous). The interpolation
     is two single-precision matrix products (BLAS; their rounding, 1.6e-7 relative L2 on the demo heart, is below
     the factorisation's 1e-5), the second one antenna row at a time so that its result stays in
     cache for the phases. The phases go over frequencies by a recurrence (64 products: error
@@ -158,7 +160,7 @@ def _spread_cluster(coarse, node_x, node_y, interp_x, interp_y_t, centre, frame,
     so that the compiler can prove the loops free of aliasing and use SIMD (3.5x faster than one
     loop writing four arrays; the same bytes).
     """
-    qx, qy, n = len(node_x), len(node_y), coarse.shape[1]
+    qx, qy, n = len(node_x), len(node_y), len(columns)
     n2 = 2 * n
     ux, uy, uz = frame[0, 0], frame[0, 1], frame[0, 2]
     vx, vy, vz = frame[1, 0], frame[1, 1], frame[1, 2]
@@ -171,8 +173,9 @@ def _spread_cluster(coarse, node_x, node_y, interp_x, interp_y_t, centre, frame,
             dz = wz + node_x[a] * uz + node_y[b] * vz
             p_re, p_im, s_re, s_im = _centre_phases(math.sqrt(dx * dx + dy * dy + dz * dz), f_first, df, half_slope,
                                                     tau_per_mm)
+            node = first_row + a * qy + b
             for k in range(n):  # times the conjugate phase
-                re, im = coarse[a * qy + b, k].real, coarse[a * qy + b, k].imag
+                re, im = summed[node, columns[k]].real, summed[node, columns[k]].imag
                 demodulated[a, 2 * k, b] = re * p_re + im * p_im
                 demodulated[a, 2 * k + 1, b] = im * p_re - re * p_im
                 p_re, p_im = p_re * s_re - p_im * s_im, p_re * s_im + p_im * s_re
@@ -274,10 +277,10 @@ def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, fre
         start = sizes[0]
     tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
     df = per_pair._uniform_step(f_sub)
+    columns = np.ascontiguousarray(np.arange(n)[i_freq])  # a sub-grid's frequencies, in the sums' columns
     for centre, _, node_x, node_y in clusters:
         qx, qy = len(node_x), len(node_y)
-        # contiguous (a sub-grid's strided columns copied): one compiled specialisation (numba cache race: radar/jit.py)
-        _spread_cluster(np.ascontiguousarray(summed[start:start + qx * qy, i_freq]), node_x, node_y,
+        _spread_cluster(summed, start, columns, node_x, node_y,
                         _interpolation(node_x, x_sub),  # each row on its own: a sub-grid's rows
                         _interpolation(node_y, y_sub, transposed=True), centre,
                         frame, float(z0_mm), x_sub, y_sub, float(f_sub[0]), df, half_slope, tau_per_mm, out)
