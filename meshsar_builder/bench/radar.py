@@ -311,7 +311,7 @@ def factorised_profile(verts, faces, radar, view: str) -> dict:
         total, _ = _best(lambda: RE.echo(tri, vis[seen], grid, freqs, radar))
     finally:
         RS._series_echo = series
-    grids = [len(x) * len(y) for _, _, x, y in clusters]
+    grids = [len(x) * len(y) for _, _, _, x, y in clusters]
     return {"view": view, "clusters": len(clusters), "cell_mm": RF.FACTORISED_CELL_MM,
             "facets_on_the_aperture": int(len(direct)), "grid_antennas_median": float(np.median(grids)),
             "series_antennas": timed["antennas"], "series_pairs": timed["pairs"],
