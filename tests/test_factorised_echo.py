@@ -238,7 +238,9 @@ def test_frequency_series_costs_no_accuracy(mesh_name, view, overrides, monkeypa
     tri, vis, lit = lit_scene(mesh_name, view, 6, radar)
     grid, freqs = RP.aperture(radar, view), RP.frequencies(radar)
     series = RE.echo(tri, vis, grid, freqs, radar, diffuse=(*lit, lambert(radar)))
-    monkeypatch.setattr(RF, "_frequency_series", lambda samples, terms: (np.eye(samples),
-                                                                           np.eye(samples, dtype=np.float32)))
+    identities = np.eye(len(freqs)), np.eye(len(freqs), dtype=np.float32)
+    for identity in identities:  # read-only, as the cached series: one compiled variant of the kernel
+        identity.flags.writeable = False
+    monkeypatch.setattr(RF, "_frequency_series", lambda samples, terms: identities)
     samples = RE.echo(tri, vis, grid, freqs, radar, diffuse=(*lit, lambert(radar)))
     assert 0 < relative_error(series, samples) <= RF.FREQUENCY_TOLERANCE
