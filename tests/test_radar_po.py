@@ -147,7 +147,7 @@ def test_long_range_span_falls_back_to_the_direct_sum_never_truncates():
 def test_jacobi_anger_coefficients_converge_at_any_span(w_max):
     """exp(j w t) = sum_l B_l T_l(t) to the tolerance for |w| <= w_max (the old search stopped at w + 64)."""
     omega = np.linspace(-w_max, w_max, 7)
-    coef = RS._chebyshev_coefficients(omega, 1e-10)
+    coef = RS._chebyshev_coefficients(omega, RS._series_order(w_max, 1e-10))
     t = np.linspace(-1, 1, 101)
     chebyshev = np.cos(np.arange(len(coef))[:, None] * np.arccos(t)[None])  # (L, T)
     series = coef.T @ chebyshev  # (N, T)

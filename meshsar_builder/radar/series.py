@@ -483,11 +483,11 @@ def _series_order(w_max, tolerance: float):
     return terms.reshape(np.shape(w_max)) if np.ndim(w_max) else int(terms[0])
 
 
-def _chebyshev_coefficients(omega: np.ndarray, tolerance: float) -> np.ndarray:
-    """(L, N) complex B_l = eps_l j^l J_l(omega_n), L = _series_order(max |omega|, tolerance)."""
+def _chebyshev_coefficients(omega: np.ndarray, terms: int) -> np.ndarray:
+    """(L, N) complex B_l = eps_l j^l J_l(omega_n), L = terms (_series_order of max |omega| at the tolerance)."""
     from scipy.special import jv
 
-    l = np.arange(_series_order(float(np.abs(omega).max()), tolerance))[:, None]
+    l = np.arange(terms)[:, None]
     # J_l(-w) = (-1)^l J_l(w): evaluate at |w| and restore the sign.
     bessel = jv(l, np.abs(omega)[None, :]) * np.where(omega[None, :] < 0, (-1.0) ** l, 1.0)
     return np.where(l == 0, 1.0, 2.0) * (1j**l) * bessel
@@ -530,13 +530,13 @@ def _series_echo(rows, positions, first, last, freqs, radar, out=None, tolerance
     n_centre = (n - 1) / 2
     tolerance = CHEBYSHEV_TOLERANCE if tolerance is None else tolerance
     bucket, halves = _order_buckets(np.maximum((high - low) / 2, 1e-6), 2 * np.pi * cycles_per_mm * n_centre, tolerance)
-    coefs = [_chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre), tolerance)
-             for half in halves]
-    terms = np.array([len(coef) for coef in coefs])
+    terms = np.atleast_1d(_series_order(2 * np.pi * cycles_per_mm * n_centre * halves, tolerance))  # one Bessel call
     if terms.max() > n:
         warnings.warn(f"chebyshev echo: a range span of {2 * halves.max():.0f} mm needs {terms.max()} series terms "
                       f"for {n} frequency samples; using the direct sum", stacklevel=4)
         return None
+    coefs = [_chebyshev_coefficients(2 * np.pi * cycles_per_mm * half * (np.arange(n) - n_centre), length)
+             for half, length in zip(halves, terms)]
     coef_even = np.zeros((len(coefs), (terms.max() + 1) // 2, n))
     coef_odd = np.zeros((len(coefs), max(terms.max() // 2, 1), n))
     for q, coef in enumerate(coefs):
