@@ -174,4 +174,8 @@ def run(ctx: Context, item: Item) -> dict:
 # echo).
 # Version 11: the point scatterers' range bounds from squared distances again (one square root an antenna): echoes
 # may differ in their last bits.
-STAGE = Stage(name=NAME, version=11, plan=plan, run=run, resources=resources, check=check)
+# Version 12: the factorised echo interpolates each cluster's frequency-series coefficients (echoes within 3e-6 of
+# v11's on the demo heart), and the images' padded grid is 165 x 165 (was 162), so that inverse FFTs land on the
+# pixels: the complex volumes grow by (165 / 162)^2 (their sums have more terms; every channel is a ratio) and the
+# demo heart's intensity channels move by at most 0.003, its depth channels on 0.04 % of the pixels.
+STAGE = Stage(name=NAME, version=12, plan=plan, run=run, resources=resources, check=check)
