@@ -310,3 +310,21 @@ def test_trainer_applies_the_focused_loss_and_caches_targets_from_echo_clean():
     assert torch.equal(geometry.focused_targets(batch, params, "clean"), first)
     with pytest.raises(Exception, match="echo_noisy"):
         geometry.focused_targets({"sample_id": ["s1"], "echo_clean": echo_clean}, params, "recorded")
+
+
+@pytest.mark.parametrize("dense_limit", [0, 10**6])  # one sparse product a step; the whole kernel as one matrix
+def test_heat_kernel_is_the_loop_of_neighbour_means(scene, dense_limit, monkeypatch):
+    """smooth_on_mesh against the definition, vertex by vertex: v <- (v + mean of its neighbours) / 2."""
+    monkeypatch.setattr(L, "DENSE_HEAT_KERNEL_VERTICES", dense_limit)
+    edges = np.asarray(scene["edges"])
+    neighbours = [[] for _ in range(len(scene["verts"]))]
+    for a, b in edges:
+        neighbours[a].append(b)
+        neighbours[b].append(a)
+    values = np.random.default_rng(2).normal(size=(2, len(neighbours), 3))
+    expected = values.copy()
+    for _ in range(7):
+        expected = np.stack([(expected[:, i] + expected[:, nb].mean(axis=1)) / 2 for i, nb in enumerate(neighbours)],
+                            axis=1)
+    smoothed = L.smooth_on_mesh(torch.as_tensor(values), scene["edges"], 7).numpy()
+    np.testing.assert_allclose(smoothed, expected, rtol=1e-10, atol=1e-12)

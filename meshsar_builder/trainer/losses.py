@@ -202,7 +202,23 @@ class _SmoothGradient(torch.autograd.Function):
         return smooth_on_mesh(grad, edges, ctx.iterations), None, None
 
 
-_DIFFUSION: dict = {}  # (edges' identity, n, device, dtype) -> sparse 0.5 (I + D^-1 A)
+_DIFFUSION: dict = {}  # (edges' identity, n, device, dtype) -> sparse 0.5 (I + D^-1 A); with iterations: its power
+# Up to this many vertices the whole heat kernel is kept as one dense matrix (64 MB in float32 at the limit): the
+# default template's (2,562 vertices, 100 steps) takes 2.4 ms a batch against 10.8 ms for its steps one sparse
+# product at a time (2 threads), after a one-off 1.3 s to build it.
+DENSE_HEAT_KERNEL_VERTICES = 4096
+
+
+def _heat_kernel(edges: torch.Tensor, n: int, iterations: int, dtype, device) -> torch.Tensor:
+    """The dense (n, n) power `iterations` of _diffusion's operator, built once per topology."""
+    key = (edges.data_ptr(), tuple(edges.shape), int(edges[:, 0].sum()), int(edges[:, 1].sum()), n, str(device),
+           dtype, iterations)
+    if key not in _DIFFUSION:
+        operator, power = _diffusion(edges, n, dtype, device), torch.eye(n, dtype=dtype, device=device)
+        for _ in range(iterations):
+            power = operator @ power
+        _DIFFUSION[key] = power
+    return _DIFFUSION[key]
 
 
 def _diffusion(edges: torch.Tensor, n: int, dtype, device) -> torch.Tensor:
@@ -226,15 +242,19 @@ def smooth_on_mesh(values: torch.Tensor, edges: torch.Tensor, iterations: int) -
     """`iterations` steps of v <- (v + mean of neighbours) / 2 over (..., n, F): a discrete heat kernel.
 
     A field's features narrower than about sqrt(iterations) edges are removed. One sparse
-    product a step (the operator is built once per topology).
+    product a step (the operator is built once per topology), or on a mesh of at most
+    DENSE_HEAT_KERNEL_VERTICES one dense product with all the steps (built once too).
     """
     if iterations <= 0:
         return values
     n = values.shape[-2]
-    operator = _diffusion(edges, n, values.dtype, values.device)
     flat = values.movedim(-2, 0).reshape(n, -1)  # (n, ... * F)
-    for _ in range(iterations):
-        flat = operator @ flat
+    if n <= DENSE_HEAT_KERNEL_VERTICES:
+        flat = _heat_kernel(edges, n, iterations, values.dtype, values.device) @ flat
+    else:
+        operator = _diffusion(edges, n, values.dtype, values.device)
+        for _ in range(iterations):
+            flat = operator @ flat
     return flat.reshape(n, *values.movedim(-2, 0).shape[1:]).movedim(0, -2)
 
 
