@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import meshsar_builder.radar.echo as RE
 import meshsar_builder.radar.params as RP
@@ -188,3 +190,19 @@ def test_default_images_take_inverse_ffts():
     freqs, (x_mm, y_mm) = RP.frequencies(RADAR), RP.aperture_axes(RADAR)
     grid = S._spectral_grid(*RADAR.aperture, freqs, x_mm, y_mm, *S.pixel_centres(IMAGES.size, IMAGES.fov_mm))
     assert grid[:2] == (165, 165) and grid[5:] == (264, 264)
+
+
+@settings(max_examples=25, deadline=None)
+@given(nx=st.integers(3, 20), ny=st.integers(3, 20), step=st.sampled_from([1.0, 2.0, 2.5, 4.0]),
+       size=st.integers(2, 40), fov=st.sampled_from([20.0, 32.0, 40.0, 50.0, 64.0, 67.2, 100.0]))
+def test_focus_is_the_naive_sum_on_grids_it_has_not_met(nx, ny, step, size, fov):
+    """Apertures, steps and pixel grids of any shape (the FFTs where their sizes line up, else the DFTs)."""
+    radar = RP.RadarParams(aperture=(nx, ny), step_mm=step, n_samples=4, echo_decimation=(1, 1, 1),
+                           loss_decimation=(1, 1, 1))
+    freqs, (x_mm, y_mm) = RP.frequencies(radar), RP.aperture_axes(radar)
+    u_mm, v_mm = S.pixel_centres(size, fov)
+    rng = np.random.default_rng(nx * ny * size)
+    echo = rng.standard_normal((nx, ny, 4)) + 1j * rng.standard_normal((nx, ny, 4))
+    d_mm = S.range_slices(radar.z0_mm, fov, freqs)
+    truth = naive_focus(echo, freqs, x_mm, y_mm, u_mm, v_mm, d_mm)
+    assert np.linalg.norm(S.focus(echo, freqs, x_mm, y_mm, u_mm, v_mm, d_mm) - truth) <= 1e-5 * np.linalg.norm(truth)
