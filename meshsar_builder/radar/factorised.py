@@ -183,13 +183,13 @@ def _spread_cluster(summed, first_row, columns, node_x, node_y, interp_x, interp
     antenna (i, j)'s real and imaginary parts in out[i, 2n] and out[i, 2n + 1] (so that the loops over j are
     contiguous).
 
-    Each node's samples are demodulated and fitted, the coefficients interpolated and the samples rebuilt: three
-    single-precision matrix products (BLAS; their rounding, 2e-7 relative L2 on the demo heart, is below the
-    factorisation's 1e-5), the last two one antenna row at a time so that their result stays in cache for the
-    phases. The
-    phases go over frequencies by a recurrence (64 products: error ~1e-14) in double precision, vectorized over
-    a row's antennas: one array written per loop, so that the compiler can prove the loops free of aliasing and
-    use SIMD (3.5x faster than one loop writing four arrays; the same bytes).
+    Each node's samples are demodulated and fitted (a double-precision matrix product), then the coefficients
+    interpolated and the samples rebuilt: three single-precision products (BLAS; their rounding, 2e-7 relative
+    L2 on the demo heart, is below the factorisation's 1e-5), the last two one antenna row at a time so that
+    their result stays in cache for the phases. The phases go over frequencies by a recurrence (64 products:
+    error ~1e-14) in double precision, vectorized over a row's antennas: one array written per loop, so that
+    the compiler can prove the loops free of aliasing and use SIMD (3.5x faster than one loop writing four
+    arrays; the same bytes).
     """
     qx, qy, n = len(node_x), len(node_y), len(columns)
     nodes = qx * qy
@@ -328,16 +328,15 @@ def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, fre
     tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
     df = per_pair._uniform_step(f_sub)
     columns = np.ascontiguousarray(np.arange(n)[i_freq])  # a sub-grid's frequencies, in the sums' columns
-    # The series' terms by the Bessel bound over the band (see above), one more for the amplitude's 1 / k^2.
-    half_band = np.pi * (f_sub[-1] - f_sub[0]) * tau_per_mm
-    terms = per_pair._series_order(half_band * np.array([rho for _, rho, _, _, _ in clusters]), FREQUENCY_TOLERANCE)
+    # The series' terms by the Bessel bound over the band (w_f above, per mm of rho), one more for the 1 / k^2.
+    w_per_mm = np.pi * (f_sub[-1] - f_sub[0]) * tau_per_mm
+    terms = per_pair._series_order(w_per_mm * np.array([rho for _, rho, _, _, _ in clusters]), FREQUENCY_TOLERANCE)
     for (centre, _, _, node_x, node_y), most in zip(clusters, np.atleast_1d(terms) + 1):
         qx, qy = len(node_x), len(node_y)
         fit, basis = _frequency_series(lf, int(most))
         _spread_cluster(summed, start, columns, node_x, node_y,
                         _interpolation(node_x, x_sub),  # each row on its own: a sub-grid's rows
-                        _interpolation(node_y, y_sub, transposed=True), fit, basis,
-                        FREQUENCY_TOLERANCE, centre,
+                        _interpolation(node_y, y_sub, transposed=True), fit, basis, FREQUENCY_TOLERANCE, centre,
                         frame, float(z0_mm), x_sub, y_sub, float(f_sub[0]), df, half_slope, tau_per_mm, out)
         start += qx * qy
     out = out.reshape(lx, lf, 2, ly)

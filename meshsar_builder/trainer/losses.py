@@ -10,6 +10,7 @@ computed once per template level.
 from __future__ import annotations
 
 import warnings
+from collections import OrderedDict
 
 import numpy as np
 import torch
@@ -202,28 +203,24 @@ class _SmoothGradient(torch.autograd.Function):
         return smooth_on_mesh(grad, edges, ctx.iterations), None, None
 
 
-_DIFFUSION: dict = {}  # (edges' identity, n, device, dtype) -> sparse 0.5 (I + D^-1 A); with iterations: its power
+# (edges' identity, n, device, dtype) -> sparse 0.5 (I + D^-1 A); with a number of steps, its dense power. The
+# least recently used go first beyond DIFFUSION_CACHED entries (a dense one is up to 64 MB).
+_DIFFUSION: OrderedDict = OrderedDict()
+DIFFUSION_CACHED = 8
 # Up to this many vertices the whole heat kernel is kept as one dense matrix (64 MB in float32 at the limit): the
 # default template's (2,562 vertices, 100 steps) takes 2.4 ms a batch against 10.8 ms for its steps one sparse
-# product at a time (2 threads), after a one-off 1.3 s to build it.
+# product at a time (2 threads), after a one-off 0.7-1.3 s to build it.
 DENSE_HEAT_KERNEL_VERTICES = 4096
 
 
-def _heat_kernel(edges: torch.Tensor, n: int, iterations: int, dtype, device) -> torch.Tensor:
-    """The dense (n, n) power `iterations` of _diffusion's operator, built once per topology."""
-    key = (edges.data_ptr(), tuple(edges.shape), int(edges[:, 0].sum()), int(edges[:, 1].sum()), n, str(device),
-           dtype, iterations)
-    if key not in _DIFFUSION:
-        operator, power = _diffusion(edges, n, dtype, device), torch.eye(n, dtype=dtype, device=device)
-        for _ in range(iterations):
-            power = operator @ power
-        _DIFFUSION[key] = power
-    return _DIFFUSION[key]
-
-
-def _diffusion(edges: torch.Tensor, n: int, dtype, device) -> torch.Tensor:
-    key = (edges.data_ptr(), tuple(edges.shape), int(edges[:, 0].sum()), int(edges[:, 1].sum()), n, str(device), dtype)
-    if key not in _DIFFUSION:
+def _cached_operator(edges: torch.Tensor, n: int, dtype, device, iterations: int | None = None) -> torch.Tensor:
+    """The diffusion operator of a topology (sparse CSR), or with `iterations` its dense power; built once."""
+    key = (edges.data_ptr(), tuple(edges.shape), int(edges[:, 0].sum()), int(edges[:, 1].sum()), n, str(device), dtype,
+           iterations)
+    if key in _DIFFUSION:
+        _DIFFUSION.move_to_end(key)
+        return _DIFFUSION[key]
+    if iterations is None:
         e = edges.to(device)
         src = torch.cat([e[:, 0], e[:, 1]])
         dst = torch.cat([e[:, 1], e[:, 0]])
@@ -234,8 +231,15 @@ def _diffusion(edges: torch.Tensor, n: int, dtype, device) -> torch.Tensor:
         coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, (n, n), check_invariants=True).coalesce()
         with warnings.catch_warnings():  # "Sparse CSR tensor support is in beta state": 10x faster than COO here
             warnings.simplefilter("ignore", UserWarning)
-            _DIFFUSION[key] = coo.to_sparse_csr()
-    return _DIFFUSION[key]
+            operator = coo.to_sparse_csr()
+    else:
+        step, operator = _cached_operator(edges, n, dtype, device), torch.eye(n, dtype=dtype, device=device)
+        for _ in range(iterations):
+            operator = step @ operator
+    _DIFFUSION[key] = operator
+    while len(_DIFFUSION) > DIFFUSION_CACHED:
+        _DIFFUSION.popitem(last=False)
+    return operator
 
 
 def smooth_on_mesh(values: torch.Tensor, edges: torch.Tensor, iterations: int) -> torch.Tensor:
@@ -250,9 +254,9 @@ def smooth_on_mesh(values: torch.Tensor, edges: torch.Tensor, iterations: int) -
     n = values.shape[-2]
     flat = values.movedim(-2, 0).reshape(n, -1)  # (n, ... * F)
     if n <= DENSE_HEAT_KERNEL_VERTICES:
-        flat = _heat_kernel(edges, n, iterations, values.dtype, values.device) @ flat
+        flat = _cached_operator(edges, n, values.dtype, values.device, iterations) @ flat
     else:
-        operator = _diffusion(edges, n, values.dtype, values.device)
+        operator = _cached_operator(edges, n, values.dtype, values.device)
         for _ in range(iterations):
             flat = operator @ flat
     return flat.reshape(n, *values.movedim(-2, 0).shape[1:]).movedim(0, -2)
