@@ -328,3 +328,13 @@ def test_heat_kernel_is_the_loop_of_neighbour_means(scene, dense_limit, monkeypa
                             axis=1)
     smoothed = L.smooth_on_mesh(torch.as_tensor(values), scene["edges"], 7).numpy()
     np.testing.assert_allclose(smoothed, expected, rtol=1e-10, atol=1e-12)
+
+
+def test_diffusion_cache_keeps_the_least_recently_used_out(scene):
+    """Every step count of a topology is a dense matrix of its own: the cache holds DIFFUSION_CACHED of them."""
+    values = torch.ones(len(scene["verts"]), 3, dtype=torch.float64)
+    for iterations in range(1, L.DIFFUSION_CACHED + 4):
+        L.smooth_on_mesh(values, scene["edges"], iterations)
+    assert len(L._DIFFUSION) == L.DIFFUSION_CACHED
+    latest = L._cached_operator(scene["edges"], len(values), torch.float64, values.device, L.DIFFUSION_CACHED + 3)
+    assert latest is list(L._DIFFUSION.values())[-1]
