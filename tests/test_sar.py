@@ -164,7 +164,7 @@ def test_multilook_depth_is_the_power_weighted_mean_of_its_neighbours():
 
 def naive_focus(echo, freqs, x_mm, y_mm, u_mm, v_mm, d_mm):
     """The module docstring's sums in complex128, slice by slice, on focus's padded grid, the pixels by DFT."""
-    px, py, kx, ky, k = S.spectral_grid(*echo.shape[:2], freqs, x_mm, y_mm, u_mm, v_mm)
+    px, py, kx, ky, k, _, _ = S.spectral_grid(*echo.shape[:2], freqs, x_mm, y_mm, u_mm, v_mm)
     spectrum = np.fft.fft2(echo * S.aperture_window(*echo.shape[:2], "hann"), s=(px, py), axes=(0, 1))
     kz2 = 4 * k**2 - kx[:, None, None] ** 2 - ky[None, :, None] ** 2
     spectrum, kz = np.where(kz2 > 0, spectrum, 0), np.sqrt(np.maximum(kz2, 0))
@@ -177,7 +177,7 @@ def test_focus_is_the_naive_sum(fov_mm):
     radar = RP.RadarParams(aperture=(16, 16), step_mm=4.0, n_samples=8)
     freqs, (x_mm, y_mm) = RP.frequencies(radar), RP.aperture_axes(radar)
     u_mm, v_mm = S.pixel_centres(32, fov_mm)
-    lengths = S._spectral_grid(16, 16, freqs, x_mm, y_mm, u_mm, v_mm)[5:]
+    lengths = S.spectral_grid(16, 16, freqs, x_mm, y_mm, u_mm, v_mm)[5:]
     assert (lengths == (66, 66)) if fov_mm == 64.0 else lengths == (None, None)
     rng = np.random.default_rng(3)
     echo = rng.standard_normal((16, 16, 8)) + 1j * rng.standard_normal((16, 16, 8))
@@ -188,7 +188,7 @@ def test_focus_is_the_naive_sum(fov_mm):
 
 def test_default_images_take_inverse_ffts():
     freqs, (x_mm, y_mm) = RP.frequencies(RADAR), RP.aperture_axes(RADAR)
-    grid = S._spectral_grid(*RADAR.aperture, freqs, x_mm, y_mm, *S.pixel_centres(IMAGES.size, IMAGES.fov_mm))
+    grid = S.spectral_grid(*RADAR.aperture, freqs, x_mm, y_mm, *S.pixel_centres(IMAGES.size, IMAGES.fov_mm))
     assert grid[:2] == (165, 165) and grid[5:] == (264, 264)
 
 

@@ -220,7 +220,7 @@ def _spread_cluster(summed, first_row, columns, node_x, node_y, interp_x, interp
         while terms > 1 and tail + energy[terms - 1] <= chop * chop * whole:
             tail += energy[terms - 1]
             terms -= 1
-    basis = np.ascontiguousarray(basis[:, :terms])
+        basis = np.ascontiguousarray(basis[:, :terms])
     coefficients = np.empty((qx, 2 * terms, qy), dtype=np.float32)  # transposed, so that each row's product is
     for a in range(qx):  # contiguous
         for b in range(qy):

@@ -184,7 +184,7 @@ def focus(echo: np.ndarray, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarra
     """
     dev = check_device(device)
     nx, ny, nf = echo.shape
-    px, py, kx, ky, k = spectral_grid(nx, ny, freqs, x_mm, y_mm, u_mm, v_mm)
+    px, py, kx, ky, k, _, _ = spectral_grid(nx, ny, freqs, x_mm, y_mm, u_mm, v_mm)  # the pixels by DFT here
     real = functools.partial(torch.as_tensor, dtype=torch.float64, device=dev)
     weighted = torch.as_tensor(np.asarray(echo), dtype=torch.complex128, device=dev) * real(aperture_window(nx, ny,
                                                                                                            window))

@@ -147,17 +147,13 @@ def _padded_size(least: int, step_mm: float, pixels_mm: np.ndarray) -> tuple[int
 
 
 def spectral_grid(nx: int, ny: int, freqs: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray, u_mm: np.ndarray,
-                  v_mm: np.ndarray) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray]:
-    """(px, py, kx (px,), ky (py,), k (Nf,)): the zero-padded FFT sizes and wavenumbers (rad/mm) of focus.
+                  v_mm: np.ndarray) -> tuple[int, int, np.ndarray, np.ndarray, np.ndarray, int | None, int | None]:
+    """(px, py, kx (px,), ky (py,), k (Nf,), length_u, length_v): the zero-padded FFT sizes and wavenumbers
+    (rad/mm) of focus, and each axis's FFT length onto the pixels, or None for a DFT (_padded_size).
 
     Shared by the numpy focus and the torch one (radar/gpu.py), so both pad and sample
     the spectrum alike.
     """
-    return _spectral_grid(nx, ny, freqs, x_mm, y_mm, u_mm, v_mm)[:5]
-
-
-def _spectral_grid(nx, ny, freqs, x_mm, y_mm, u_mm, v_mm):
-    """spectral_grid's five, then each axis's inverse-FFT length onto the pixels, or None (_padded_size)."""
     dx, dy = x_mm[1] - x_mm[0], y_mm[1] - y_mm[0]
     # Zero-padding to twice the larger of aperture and image extent keeps the
     # periodic images of the scene and of its sidelobes out of the pixels.
@@ -254,7 +250,7 @@ def _focus_plan(nx: int, ny: int, freqs: tuple, x_mm: tuple, y_mm: tuple, u_mm: 
     """focus's plan for one grid (arguments as tuples of floats, to be hashable): a third of focus's time,
     computed once per process and grid (~30 MB at the defaults)."""
     freqs, x_mm, y_mm, u_mm, v_mm, d_mm = map(np.asarray, (freqs, x_mm, y_mm, u_mm, v_mm, d_mm))
-    px, py, kx, ky, k, length_u, length_v = _spectral_grid(nx, ny, freqs, x_mm, y_mm, u_mm, v_mm)
+    px, py, kx, ky, k, length_u, length_v = spectral_grid(nx, ny, freqs, x_mm, y_mm, u_mm, v_mm)
     kz2 = 4 * k[None, :, None] ** 2 - kx[:, None, None] ** 2 - ky[None, None, :] ** 2  # (px, Nf, py)
     kz_cycles = np.sqrt(np.maximum(kz2, 0)) / (2 * np.pi)
     # exp(-j kz d) slice by slice: one exact phasor at the first slice, then a
