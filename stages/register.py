@@ -114,4 +114,6 @@ def finish(ctx: Context, results: Results) -> None:
 # Version 9: a biventricular map's apex along its basal LV disc (v7: issue 26; v6: the fold guard
 # adds the first-order term on folded regions).
 # Version 15: the preconditioner's LU with relaxed supernodes (its rounding changes, so the fits' last bits do).
-STAGE = Stage(name=NAME, version=15, plan=plan, run=run, finish=finish, again=again, after=("remesh",))
+# Version 16: the rounds before the last run round_coarse_steps coarse (groupwise.round_params), so the templates
+# and the last round's fits move within the rounds' tolerance.
+STAGE = Stage(name=NAME, version=16, plan=plan, run=run, finish=finish, again=again, after=("remesh",))

@@ -177,6 +177,7 @@ def test_choose_template_takes_the_median_volume_deterministically():
         ("groupwise_converge_mm", -0.1),
         ("groupwise_smoothing", -1),
         ("coarse_steps", -1),
+        ("round_coarse_steps", -1),
         ("coarse_vertices", 10),
     ],
 )
@@ -479,6 +480,23 @@ def test_a_coarse_copy_that_cannot_be_made_falls_back_to_the_full_schedule(small
     assert summary["steps_kept"] == len(params.stiffness)
     reference, _ = N.nricp(verts, faces, s_verts, s_faces, RegistrationParams(coarse_steps=0))
     np.testing.assert_array_equal(full, reference)  # exactly the full-resolution fit
+
+
+def test_groupwise_rounds_before_the_last_run_more_steps_coarse(small_pair):
+    """A round that only makes the next template runs round_coarse_steps coarse; the last
+    round's fits (the model's shapes) keep coarse_steps, and both reach the subject alike."""
+    from meshsar_builder.geometry.groupwise import register_groupwise
+
+    verts, faces, (s_verts, s_faces) = small_pair
+    params = RegistrationParams(coarse_steps=1, round_coarse_steps=4, coarse_vertices=200, groupwise_rounds=1,
+                                groupwise_converge_mm=0.0, landmark_weight=0.0)
+    subjects = [(s_verts, s_faces, None), (s_verts * 1.05, s_faces, None)]
+    _, _, rounds = register_groupwise((verts, faces, None), subjects, params, lambda r, i: np.random.default_rng(i))
+    assert [r["round"] for r in rounds] == [0, 1]
+    assert [fit["nricp"]["coarse"]["steps"] for fit in rounds[0]["fits"]] == [4, 4]
+    assert [fit["nricp"]["coarse"]["steps"] for fit in rounds[1]["fits"]] == [1, 1]
+    for fits in (rounds[0]["fits"], rounds[1]["fits"]):
+        assert all(fit["nricp"]["coarse"]["used"] and fit["mean_mm"] < 0.3 for fit in fits), fits
 
 
 def test_frame_fits_coarsen_only_the_whole_schedule():

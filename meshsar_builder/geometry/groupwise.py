@@ -21,6 +21,7 @@ procedure in one process (bench, tests).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -149,6 +150,12 @@ def final_round(round_: int, moved_mm: float | None, params: RegistrationParams)
     return round_ >= 1 and moved_mm is not None and moved_mm < params.groupwise_converge_mm
 
 
+def round_params(params: RegistrationParams, final: bool) -> RegistrationParams:
+    """The registration parameters of a round's fits: a round before the last makes only the
+    next template, so its fits run round_coarse_steps of the schedule coarse."""
+    return params if final else dataclasses.replace(params, coarse_steps=params.round_coarse_steps)
+
+
 def register_groupwise(
     template: tuple[np.ndarray, np.ndarray, np.ndarray],
     subjects: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
@@ -171,8 +178,9 @@ def register_groupwise(
         record, fits, reports = {"round": round_, "movement_mm": moved}, [], []
         t0 = time.perf_counter()
         final = final_round(round_, moved, params)
+        fit_params = round_params(params, final)
         for index, (verts, faces, labels) in enumerate(subjects):
-            fitted, report = register(t_verts, t_faces, verts, faces, params, rng(round_, index), t_labels, labels)
+            fitted, report = register(t_verts, t_faces, verts, faces, fit_params, rng(round_, index), t_labels, labels)
             try:
                 accept(report, params, correspondence=final)
             except MeshError as error:
@@ -261,7 +269,7 @@ def fit_subject(subject_path: str, template_path: str, out_path: Path, params: R
     template's faces and labels on the fitted vertices) to out_path; return the fit's report."""
     s_verts, s_faces, s_labels = read_ply(subject_path)
     t_verts, t_faces, t_labels = read_ply(template_path)
-    fitted, report = register(t_verts, t_faces, s_verts, s_faces, params, rng, t_labels, s_labels)
+    fitted, report = register(t_verts, t_faces, s_verts, s_faces, round_params(params, final), rng, t_labels, s_labels)
     accept(report, params, correspondence=final)
     write_ply(out_path, fitted, t_faces, t_labels)
     return report

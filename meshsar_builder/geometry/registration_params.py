@@ -93,6 +93,11 @@ class RegistrationParams:
         coarse_vertices; 0: none. Default 1: the first step coarse cost 0.005 mm of
         correspondence on the phantom heart's known warps on average, the second coarse as
         well up to 0.09 mm more (twist).
+    round_coarse_steps: coarse_steps of a groupwise round before the last (groupwise.py). Those
+        fits only make the next round's template, a mean whose movement is judged against
+        groupwise_converge_mm (0.5 mm), so they can afford the correspondence the coarse
+        steps cost; all but the softest step coarse reach the subject as closely (0.071 against
+        0.070 mm on a demo heart) in half the time.
     """
 
     template: str = "median"
@@ -130,6 +135,7 @@ class RegistrationParams:
     frame_ring_points: int = 8
     coarse_steps: int = 1
     coarse_vertices: int = 1500
+    round_coarse_steps: int = 4
 
     def __post_init__(self) -> None:
         if not self.template:
@@ -197,8 +203,9 @@ class RegistrationParams:
         for key in ("ring_points", "frame_ring_points"):
             if getattr(self, key) < 0:
                 raise ValueError(f"{key}: must be >= 0, got {getattr(self, key)}")
-        if self.coarse_steps < 0:
-            raise ValueError(f"coarse_steps: must be >= 0, got {self.coarse_steps}")
+        for key in ("coarse_steps", "round_coarse_steps"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"{key}: must be >= 0, got {getattr(self, key)}")
         if self.coarse_vertices < 100:
             raise ValueError(f"coarse_vertices: must be >= 100, got {self.coarse_vertices}")
         if self.distance_samples < 100:
