@@ -334,7 +334,8 @@ def stage_targets(build_dir: Path, stages: dict, recipe) -> dict:
 
     items = {
         "remesh_seconds_per_mesh": [rec["seconds"] for rec in sidecars("remesh")],
-        "register_seconds_per_fit": [rec["seconds"] for rec in sidecars("register")],
+        # The last round's fits: the earlier rounds' run mostly coarse (groupwise.round_params).
+        "register_seconds_per_fit": [rec["seconds"] for rec in sidecars("register") if rec["final"]],
         "track_seconds_per_frame": [frame["seconds"] for rec in sidecars("track") for frame in rec["frames"].values()
                                     if "seconds" in frame],  # a frame kept as its own mesh was not fitted
         "radar_seconds_per_view": [sum(view["seconds"].values()) for rec in sidecars("radar") for view in rec["views"]],
