@@ -89,4 +89,5 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
 # version 8: flipped faces judged against their neighbourhood (register v13); version 9: a
 # folding step keeps its fold-free part (register v14).
 # Version 10: register v15's preconditioner.
-STAGE = Stage(name=NAME, version=10, plan=plan, run=run, after=("remesh",))
+# Version 11: register v17's preconditioner.
+STAGE = Stage(name=NAME, version=11, plan=plan, run=run, after=("remesh",))

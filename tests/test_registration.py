@@ -1,3 +1,7 @@
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import trimesh
@@ -480,6 +484,40 @@ def test_a_coarse_copy_that_cannot_be_made_falls_back_to_the_full_schedule(small
     assert summary["steps_kept"] == len(params.stiffness)
     reference, _ = N.nricp(verts, faces, s_verts, s_faces, RegistrationParams(coarse_steps=0))
     np.testing.assert_array_equal(full, reference)  # exactly the full-resolution fit
+
+
+def test_the_preconditioner_stays_inside_its_buffers(small_pair, tmp_path, monkeypatch):
+    """SuperLU's factorisation of a fit's matrices, repeated in a process whose every allocation glibc checks
+    (MALLOC_CHECK_=3, PYTHONMALLOC=malloc). Supernodes relaxed to 80 columns in panels of 20 wrote past
+    SuperLU's buffers on these (a 642-vertex ellipsoid's fit and its 200-vertex coarse start): glibc aborted
+    within 5 rounds, and test processes crashed at random."""
+    import scipy.sparse as sp
+
+    import meshsar_builder.geometry.nricp as N
+
+    verts, faces, (s_verts, s_faces) = small_pair
+    factorised = []
+    real = N._preconditioner
+    monkeypatch.setattr(N, "_preconditioner", lambda matrix, order: factorised.append((matrix, order)) or
+                        real(matrix, order))
+    N.nricp(verts, faces, s_verts, s_faces, RegistrationParams(coarse_steps=4, coarse_vertices=200))
+    assert {matrix.shape[0] for matrix, _ in factorised} == {4 * 200, 4 * len(verts)}
+    for k, (matrix, order) in enumerate(factorised):
+        sp.save_npz(tmp_path / f"matrix{k}.npz", matrix.tocsr())
+        np.save(tmp_path / f"order{k}.npy", order)
+    script = (
+        "import sys, numpy as np, scipy.sparse as sp\n"
+        "from meshsar_builder.geometry.nricp import _preconditioner\n"
+        "rng = np.random.default_rng(0)\n"
+        f"for _ in range(20):\n"
+        f"    for k in range({len(factorised)}):\n"
+        "        matrix = sp.load_npz(f'{sys.argv[1]}/matrix{k}.npz')\n"
+        "        solve = _preconditioner(matrix, np.load(f'{sys.argv[1]}/order{k}.npy'))\n"
+        "        assert np.isfinite(solve(rng.standard_normal((matrix.shape[0], 3)))).all()\n"
+        "print('ok')\n")
+    env = {**os.environ, "MALLOC_CHECK_": "3", "PYTHONMALLOC": "malloc"}
+    done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env, capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", (done.returncode, done.stderr[-2000:])
 
 
 def test_groupwise_rounds_before_the_last_run_more_steps_coarse(small_pair):

@@ -223,13 +223,13 @@ def _preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
     (Woodbury's identity cost k more solves per factorisation than it saved: fits 10-12 % faster without it, at
     1,500 and 6,000 vertices, the same distances to 4 digits). The LU is in single precision: it only
     preconditions the conjugate gradients, which run in double and stop at a relative residual of 1e-4, 3 orders
-    above its rounding (two demo whole-heart fits: 15-19 % faster, the same figures). Its supernodes are relaxed
-    to 80 columns in panels of 20 (SuperLU's defaults: 5, 10), for larger dense blocks in a factor this full (16 M
-    nonzeros from 0.43 M at 4,845 vertices): a demo frame fit 2.30-2.36 -> 2.11-2.14 s, the same figures; no gain
-    on one with 7 fold repeats (10.3-10.4 s against 9.7-10.6).
+    above its rounding (two demo whole-heart fits: 15-19 % faster, the same figures). SuperLU's own supernode
+    relaxation and panel size: relaxed to 80 columns in panels of 20, the factorisation was 10-15 % faster, but
+    SuperLU then wrote past its buffers (glibc's checks abort within a few hundred factorisations of a small
+    ellipsoid's fits; 30 and 40 columns as well), which crashed test processes at random.
     """
     factor = splu(matrix[order][:, order].tocsc().astype(np.float32), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                  relax=80, panel_size=20, options={"SymmetricMode": True})
+                  options={"SymmetricMode": True})
 
     def solve(residual: np.ndarray) -> np.ndarray:
         solved = np.empty_like(residual)
