@@ -225,7 +225,7 @@ def _preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
     preconditions the conjugate gradients, which run in double and stop at a relative residual of 1e-4, 3 orders
     above its rounding (two demo whole-heart fits: 15-19 % faster, the same figures). SuperLU's own supernode
     relaxation and panel size: relaxed to 80 columns in panels of 20, the factorisation was 10-15 % faster, but
-    SuperLU then wrote past its buffers (glibc's checks abort within a few hundred factorisations of a small
+    SuperLU then wrote past its buffers (glibc's checks abort within 25 factorisations of a small
     ellipsoid's fits; 30 and 40 columns as well), which crashed test processes at random.
     """
     factor = splu(matrix[order][:, order].tocsc().astype(np.float32), permc_spec="NATURAL", diag_pivot_thresh=0.0,
