@@ -487,10 +487,10 @@ def test_a_coarse_copy_that_cannot_be_made_falls_back_to_the_full_schedule(small
 
 
 def test_the_preconditioner_stays_inside_its_buffers(small_pair, tmp_path, monkeypatch):
-    """SuperLU's factorisation of a fit's matrices, repeated in a process whose every allocation glibc checks
-    (MALLOC_CHECK_=3, PYTHONMALLOC=malloc). Supernodes relaxed to 80 columns in panels of 20 wrote past
-    SuperLU's buffers on these (a 642-vertex ellipsoid's fit and its 200-vertex coarse start): glibc aborted
-    within 5 rounds, and test processes crashed at random."""
+    """SuperLU's factorisation of a fit's matrices, repeated in a child process whose Python objects go through
+    glibc's malloc too (PYTHONMALLOC=malloc), so that a stray write meets glibc's chunk checks. Supernodes
+    relaxed to 80 columns in panels of 20 wrote past SuperLU's buffers on these (a 642-vertex ellipsoid's fit
+    and its 200-vertex coarse start): glibc aborted within 5 rounds, and test processes crashed at random."""
     import scipy.sparse as sp
 
     import meshsar_builder.geometry.nricp as N
@@ -509,13 +509,13 @@ def test_the_preconditioner_stays_inside_its_buffers(small_pair, tmp_path, monke
         "import sys, numpy as np, scipy.sparse as sp\n"
         "from meshsar_builder.geometry.nricp import _preconditioner\n"
         "rng = np.random.default_rng(0)\n"
-        f"for _ in range(20):\n"
+        "for _ in range(20):\n"
         f"    for k in range({len(factorised)}):\n"
         "        matrix = sp.load_npz(f'{sys.argv[1]}/matrix{k}.npz')\n"
         "        solve = _preconditioner(matrix, np.load(f'{sys.argv[1]}/order{k}.npy'))\n"
         "        assert np.isfinite(solve(rng.standard_normal((matrix.shape[0], 3)))).all()\n"
         "print('ok')\n")
-    env = {**os.environ, "MALLOC_CHECK_": "3", "PYTHONMALLOC": "malloc"}
+    env = {**os.environ, "PYTHONMALLOC": "malloc"}
     done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], env=env, capture_output=True, text=True)
     assert done.returncode == 0 and done.stdout.strip() == "ok", (done.returncode, done.stderr[-2000:])
 
