@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from meshsar_builder.geometry.groupwise import mean_template
 from meshsar_builder.geometry.landmarks import label_landmarks
 from meshsar_builder.geometry.nricp import nricp
-from meshsar_builder.geometry.registration import accept, register, robust_landmarks
+from meshsar_builder.geometry.registration import _procrustes_many, accept, register, robust_landmarks
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import MeshError
@@ -83,6 +83,25 @@ def test_robust_similarity_outvotes_a_disagreeing_landmark():
     assert residual[5] > 40 and residual[inliers].max() < 1.5
     # Fewer than 4: nothing to outvote.
     assert robust_landmarks(moving[:3], fixed[:3], True, 5.0)[0].all()
+
+
+@pytest.mark.parametrize("similarity", [True, False])
+def test_batched_procrustes_matches_trimesh_set_by_set(similarity):
+    """The LMedS's batched fits against trimesh's procrustes one set at a time (its formula), a set whose
+    points coincide included (with a scale there is no fit: NaN, where trimesh divides by zero)."""
+    rng = np.random.default_rng(11)
+    moving = rng.normal(0.0, 25.0, (40, 3, 3))
+    fixed = np.stack([1.1 * m @ Rotation.random(random_state=i).as_matrix().T + rng.normal(0.0, 9.0, 3)
+                      + rng.normal(0.0, 2.0, (3, 3)) for i, m in enumerate(moving)])
+    moving[7] = moving[7, :1]  # three coincident points
+    matrices = _procrustes_many(moving, fixed, similarity)
+    for i, (m, f) in enumerate(zip(moving, fixed)):
+        if i == 7 and similarity:
+            assert np.isnan(matrices[i]).all()
+            continue
+        expected = trimesh.registration.procrustes(m, f, reflection=False, scale=similarity, return_cost=False)
+        np.testing.assert_allclose(matrices[i], expected, rtol=0, atol=1e-12)
+        assert np.linalg.det(matrices[i][:3, :3]) > 0  # a rotation, never a reflection
 
 
 def test_accept_names_a_divergence_twice_and_the_landmarks_a_fit_moved_away():

@@ -252,12 +252,44 @@ def register(
     return fitted, report
 
 
+def _procrustes_many(moving: np.ndarray, fixed: np.ndarray, similarity: bool) -> np.ndarray:
+    """Procrustes fits of many small point sets at once, by trimesh.registration.procrustes's
+    formula (no reflection; scale with `similarity`), one batched SVD instead of a call each.
+
+    moving, fixed : (t, p, 3) mm  ->  (t, 4, 4) matrices sending moving[i] onto fixed[i]; NaN
+    where a scale is fitted to a set with no spread (its points coincide): no fit exists.
+    """
+    weight = np.full((moving.shape[1], 1), 1.0 / moving.shape[1])
+    centres = [(points * weight).sum(axis=1) for points in (moving, fixed)]  # (t, 3) each
+    centred = [points - centre[:, None, :] for points, centre in zip((moving, fixed), centres)]
+    if similarity:
+        scales = [np.sqrt((c**2 * weight).reshape(len(c), -1).sum(axis=1)) for c in centred]  # (t,) each
+    else:
+        scales = [np.ones(len(moving))] * 2
+    good = (scales[0] > 0) & (scales[1] > 0)
+    safe = [np.where(good, s, 1.0)[:, None, None] for s in scales]
+    target = np.where(good[:, None, None],
+                      np.swapaxes(centred[1] / safe[1], 1, 2) @ (centred[0] / safe[0]), np.eye(3))  # (t, 3, 3)
+    u, _, vh = np.linalg.svd(target)
+    flip = np.ones((len(target), 3))
+    flip[:, 2] = np.linalg.det(u @ vh)
+    rotation = (u * flip[:, None, :]) @ vh  # (t, 3, 3)
+    linear = (safe[1] / safe[0]) * rotation
+    matrices = np.zeros((len(target), 4, 4))
+    matrices[:, :3, :3] = linear
+    matrices[:, :3, 3] = centres[1] - np.einsum("tij,tj->ti", linear, centres[0])
+    matrices[:, 3, 3] = 1.0
+    matrices[~good] = np.nan
+    return matrices
+
+
 def robust_landmarks(moving: np.ndarray, fixed: np.ndarray, similarity: bool, floor_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Least-median-of-squares similarity (or rigid) fit between corresponding landmarks.
 
     moving, fixed : (k, 3) mm. Every triple of landmarks (at most 560, chosen evenly) proposes a
     Procrustes fit; the one with the least median squared residual over all landmarks wins
-    (Rousseeuw's LMedS: half the landmarks may disagree). A landmark is an inlier when its
+    (Rousseeuw's LMedS: half the landmarks may disagree; the first such triple on a tie). A
+    landmark is an inlier when its
     residual is within 2.5 robust standard deviations (1.4826 (1 + 5 / (k - 3)) sqrt(median))
     or floor_mm, whichever is larger; the fit is then redone on the inliers.
     Returns the inlier mask (k,) and every landmark's residual (k,) mm under that final fit.
@@ -270,19 +302,15 @@ def robust_landmarks(moving: np.ndarray, fixed: np.ndarray, similarity: bool, fl
         return np.ones(k, bool), np.linalg.norm(_apply(matrix, moving) - fixed, axis=1)
     triples = np.array(list(itertools.combinations(range(k), 3)))
     triples = triples[np.linspace(0, len(triples) - 1, min(len(triples), 560)).astype(int)]
-    best, best_median = None, np.inf
-    for triple in triples:
-        try:
-            matrix = trimesh.registration.procrustes(moving[triple], fixed[triple], **options)
-        except (np.linalg.LinAlgError, ValueError):
-            continue
-        if not np.all(np.isfinite(matrix)):
-            continue
-        median = float(np.median(np.sum((_apply(matrix, moving) - fixed) ** 2, axis=1)))
-        if median < best_median:
-            best, best_median = matrix, median
-    if best is None:
+    # All triples' fits at once: one at a time they took 0.09 s of a 2 s frame fit.
+    matrices = _procrustes_many(moving[triples], fixed[triples], similarity)  # (t, 4, 4)
+    moved = np.einsum("tij,kj->tki", matrices[:, :3, :3], moving) + matrices[:, None, :3, 3]  # (t, k, 3)
+    medians = np.median(np.sum((moved - fixed) ** 2, axis=2), axis=1)  # (t,)
+    medians[~np.isfinite(medians)] = np.inf
+    if not np.isfinite(medians).any():
         return np.ones(k, bool), np.zeros(k)
+    best_median = medians.min()
+    best = matrices[int(np.argmin(medians))]
     sigma = 1.4826 * (1 + 5 / (k - 3)) * np.sqrt(best_median)
     inliers = np.linalg.norm(_apply(best, moving) - fixed, axis=1) <= max(2.5 * sigma, floor_mm)
     if inliers.sum() >= 3:
