@@ -289,9 +289,9 @@ def robust_landmarks(moving: np.ndarray, fixed: np.ndarray, similarity: bool, fl
     moving, fixed : (k, 3) mm. Every triple of landmarks (at most 560, chosen evenly) proposes a
     Procrustes fit; the one with the least median squared residual over all landmarks wins
     (Rousseeuw's LMedS: half the landmarks may disagree; the first such triple on a tie). A
-    landmark is an inlier when its
-    residual is within 2.5 robust standard deviations (1.4826 (1 + 5 / (k - 3)) sqrt(median))
-    or floor_mm, whichever is larger; the fit is then redone on the inliers.
+    landmark is an inlier when its residual is within 2.5 robust standard deviations
+    (1.4826 (1 + 5 / (k - 3)) sqrt(median)) or floor_mm, whichever is larger; the fit is then
+    redone on the inliers.
     Returns the inlier mask (k,) and every landmark's residual (k,) mm under that final fit.
     With fewer than 4 landmarks nothing can be outvoted: all are inliers.
     """
