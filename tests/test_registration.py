@@ -497,8 +497,8 @@ def test_the_preconditioner_stays_inside_its_buffers(small_pair, tmp_path, monke
 
     verts, faces, (s_verts, s_faces) = small_pair
     factorised = []
-    real = N._preconditioner
-    monkeypatch.setattr(N, "_preconditioner", lambda matrix, order: factorised.append((matrix, order)) or
+    real = N.preconditioner
+    monkeypatch.setattr(N, "preconditioner", lambda matrix, order: factorised.append((matrix, order)) or
                         real(matrix, order))
     N.nricp(verts, faces, s_verts, s_faces, RegistrationParams(coarse_steps=4, coarse_vertices=200))
     assert {matrix.shape[0] for matrix, _ in factorised} == {4 * 200, 4 * len(verts)}
@@ -507,12 +507,12 @@ def test_the_preconditioner_stays_inside_its_buffers(small_pair, tmp_path, monke
         np.save(tmp_path / f"order{k}.npy", order)
     script = (
         "import sys, numpy as np, scipy.sparse as sp\n"
-        "from meshsar_builder.geometry.nricp import _preconditioner\n"
+        "from meshsar_builder.geometry.nricp_solve import preconditioner\n"
         "rng = np.random.default_rng(0)\n"
         "for _ in range(20):\n"
         f"    for k in range({len(factorised)}):\n"
         "        matrix = sp.load_npz(f'{sys.argv[1]}/matrix{k}.npz')\n"
-        "        solve = _preconditioner(matrix, np.load(f'{sys.argv[1]}/order{k}.npy'))\n"
+        "        solve = preconditioner(matrix, np.load(f'{sys.argv[1]}/order{k}.npy'))\n"
         "        assert np.isfinite(solve(rng.standard_normal((matrix.shape[0], 3)))).all()\n"
         "print('ok')\n")
     env = {**os.environ, "PYTHONMALLOC": "malloc"}

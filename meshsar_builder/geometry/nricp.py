@@ -42,23 +42,21 @@ Two further additions over the paper, both for thin vessels joined to chambers:
 Speed: the system changes only in its 4 x 4 diagonal data blocks between iterations of one
 step, so it is factorised once per step (SuperLU, the vertices in minimum degree order; again
 after a fold-guard repeat changes the stiffness) and that factorisation preconditions
-warm-started conjugate gradients in every iteration; and the stiffest step runs on a coarse
+warm-started conjugate gradients in every iteration (nricp_solve.py); and the stiffest step runs on a coarse
 copy of the template (_coarse_start).
 """
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.landmarks import face_labels
 from meshsar_builder.geometry.measures import edge_lengths, flipped_faces, unique_edges
 from meshsar_builder.geometry.meshing import closest_among, transfer_labels
+from meshsar_builder.geometry.nricp_solve import Operator, pcg, preconditioner, unknowns_order
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import simplify
 from meshsar_builder.geometry.surface_map import interpolation_matrix
@@ -180,67 +178,6 @@ class Subject:
         return dist, nearest
 
 
-class _Operator:
-    """K = A + beta R^T R without forming R^T R (dense over a structure's vertices): K @ x."""
-
-    def __init__(self, matrix: sp.csr_matrix, rows: sp.csr_matrix | None, beta: float):
-        self.matrix, self.rows, self.beta = matrix, rows, beta
-
-    def __matmul__(self, x: np.ndarray) -> np.ndarray:
-        product = self.matrix @ x
-        if self.rows is not None:
-            product += self.beta * (self.rows.T @ (self.rows @ x))
-        return product
-
-
-def _pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float, max_iterations: int) -> np.ndarray:
-    """Preconditioned conjugate gradients for a symmetric positive definite system, columns at once.
-
-    The residual is tested before each preconditioning, so no solve is spent once it is small
-    (a warm start from the previous iteration is often there after one step).
-    """
-    x = start.copy()
-    residual = rhs - matrix @ x
-    goal = rtol * np.linalg.norm(rhs, axis=0)
-    direction, rz = np.zeros_like(x), np.zeros(x.shape[1])
-    for _ in range(max_iterations):
-        if np.all(np.linalg.norm(residual, axis=0) <= goal):
-            break
-        z = precondition(residual)
-        rz_new = np.sum(residual * z, axis=0)
-        direction = z + np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0) * direction
-        rz = rz_new
-        k_dir = matrix @ direction
-        curvature = np.sum(direction * k_dir, axis=0)
-        step = np.divide(rz, curvature, out=np.zeros_like(rz), where=curvature > 0)
-        x += step * direction
-        residual -= step * k_dir
-    return x
-
-
-def _preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
-    """r -> A^-1 r for the sparse part A of K = A + beta R^T R: its LU (unknowns in `order`, a fill-reducing order).
-
-    The landmark part, rank k but dense over each structure's vertices, is left to the conjugate gradients
-    (Woodbury's identity cost k more solves per factorisation than it saved: fits 10-12 % faster without it, at
-    1,500 and 6,000 vertices, the same distances to 4 digits). The LU is in single precision: it only
-    preconditions the conjugate gradients, which run in double and stop at a relative residual of 3e-4, 3 orders
-    above its rounding (two demo whole-heart fits: 15-19 % faster, the same figures). SuperLU's own supernode
-    relaxation and panel size: relaxed to 80 columns in panels of 20, the factorisation was 10-15 % faster, but
-    SuperLU then wrote past its buffers (glibc's checks abort within 25 factorisations of a small
-    ellipsoid's fits; 30 and 40 columns as well), which crashed test processes at random.
-    """
-    factor = splu(matrix[order][:, order].tocsc().astype(np.float32), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
-
-    def solve(residual: np.ndarray) -> np.ndarray:
-        solved = np.empty_like(residual)
-        solved[order] = factor.solve(residual[order].astype(np.float32))
-        return solved
-
-    return solve
-
-
 def _ring_residuals(verts: np.ndarray, edges: np.ndarray, spacing: np.ndarray) -> tuple[np.ndarray, ...]:
     """Each vertex's 1-ring (itself and its r - 1 neighbours) and the projection
     Q = I - A A^+ (r x r) onto what an affine function of position cannot fit there,
@@ -268,27 +205,6 @@ def _ring_residuals(verts: np.ndarray, edges: np.ndarray, spacing: np.ndarray) -
     return tuple(np.concatenate(column) for column in zip(*parts))
 
 
-@functools.lru_cache(maxsize=8)
-def _unknowns_order(n: int, faces: bytes) -> np.ndarray:
-    """(4n,) the factorisation's order of the unknowns of a template with these faces ((m, 3) int64 as bytes).
-
-    SuperLU's minimum degree order of the vertices, of a diagonally dominant matrix with the stiffness's
-    pattern (vertices that share a ring: (I + adjacency)^2; only the order is used), each vertex's 4 unknowns
-    kept together: it fills in a quarter less than ordering the 4n unknowns one by one, and factorises in
-    half the time. It depends on the faces alone, so the fits of one process (every subject on one template,
-    every frame of a subject) find it once: it was 2 % of a frame fit.
-    """
-    edges = unique_edges(np.frombuffer(faces, dtype=np.int64).reshape(-1, 3))
-    ring = sp.csr_matrix((np.ones(2 * len(edges)), (edges.T.ravel(), edges[:, ::-1].T.ravel())), shape=(n, n))
-    ring = ring + sp.eye(n)
-    pattern = ring @ ring + n * sp.eye(n)
-    vertices = np.argsort(splu(pattern.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                               options={"SymmetricMode": True}).perm_c)
-    order = (4 * vertices[:, None] + np.arange(4)).ravel()
-    order.flags.writeable = False  # shared by every system on these faces
-    return order
-
-
 class _AmbergSystem:
     """Normal equations of the optimal-step NICP for one template (see the module docstring)."""
 
@@ -312,7 +228,7 @@ class _AmbergSystem:
             shape=(count, n),
         )
         self.edges = edges
-        self.order = _unknowns_order(n, np.ascontiguousarray(faces, dtype=np.int64).tobytes())
+        self.order = unknowns_order(n, np.ascontiguousarray(faces, dtype=np.int64).tobytes())
         self.g2 = sp.diags([1.0, 1.0, 1.0, gamma**2])
         self.block_index = (np.arange(n + 1), np.arange(n))
 
@@ -567,14 +483,14 @@ def _fit(
                     break
                 least = min(least, mean_distance)
                 data, rhs = system.data(weights, targets)
-                matrix = _Operator((stiffness + data).tocsr(), rows, beta)
+                matrix = Operator((stiffness + data).tocsr(), rows, beta)
                 if rows is not None:
                     rhs = rhs + beta * landmark_rhs
                 if factor is None:
-                    factor = _preconditioner(matrix.matrix, system.order)
+                    factor = preconditioner(matrix.matrix, system.order)
                 # 3e-4, not 1e-4: 6-9 % faster demo fits, which lie as close (to 0.0003 mm) and 0.002-0.009 mm
                 # from the tighter solves' (1e-3: 0.06-0.10 mm, 3 % farther from the subject).
-                x_step = _pcg(matrix, rhs, x_step, factor, rtol=3e-4, max_iterations=50)
+                x_step = pcg(matrix, rhs, x_step, factor, rtol=3e-4, max_iterations=50)
                 moved = system.apply(x_step)
                 change = np.linalg.norm(moved - fit, axis=1).mean()
                 fit = moved
