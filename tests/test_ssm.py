@@ -235,3 +235,18 @@ def test_specificity_is_the_naive_nearest_training_distance_of_the_samplers_draw
 def test_params_reject_bad_values_naming_the_field(field, value):
     with pytest.raises(ValueError, match=f"^{field}: .*got {value}"):
         SSMParams(**{field: value})
+
+
+def test_nearest_mean_distance_is_numpys_least_mean_norm():
+    """The specificity's distance (one numba pass that stops a shape's sum once it passes the least so far)
+    against numpy's mean vertex norm per shape and its minimum: the nearest shape first, last, and tied."""
+    from meshsar_builder.geometry.ssm import nearest_mean_distance
+
+    rng = np.random.default_rng(5)
+    verts = rng.normal(0.0, 20.0, (500, 3))
+    shapes = verts + rng.normal(0.0, 1.0, (6, 1, 1)) * rng.normal(0.0, 3.0, (6, 500, 3))
+    for order in (np.arange(6), np.arange(6)[::-1], np.r_[0, 0, np.arange(1, 6)]):
+        stack = np.ascontiguousarray(shapes[order])
+        expected = np.linalg.norm(stack - verts, axis=2).mean(axis=1).min()
+        assert nearest_mean_distance(stack, verts) == pytest.approx(expected, rel=1e-12)
+
