@@ -249,4 +249,3 @@ def test_nearest_mean_distance_is_numpys_least_mean_norm():
         stack = np.ascontiguousarray(shapes[order])
         expected = np.linalg.norm(stack - verts, axis=2).mean(axis=1).min()
         assert nearest_mean_distance(stack, verts) == pytest.approx(expected, rel=1e-12)
-
