@@ -261,6 +261,31 @@ def test_fold_guard_keeps_an_overly_soft_schedule_fold_free(vessel_shapes):
     assert report["nricp"]["steps"] == 3
 
 
+def test_systems_on_one_topology_share_one_fill_reducing_order():
+    """The factorisation's order depends on the faces alone: systems on moved vertices of one mesh (every
+    subject on one template, every frame of a subject) reuse it, and another mesh gets its own. It keeps each
+    vertex's 4 unknowns together and is the minimum degree order of the stiffness's own ring pattern."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from meshsar_builder.geometry.nricp import _AmbergSystem
+
+    sphere = unit_sphere()
+    first = _AmbergSystem(blob(sphere.vertices) / 80.0, sphere.faces, gamma=1.0)
+    moved = _AmbergSystem(1.1 * blob(sphere.vertices) / 80.0 + 0.3, sphere.faces, gamma=1.0)
+    assert moved.order is first.order  # found once
+    other = trimesh.creation.icosphere(subdivisions=2)
+    assert _AmbergSystem(np.asarray(other.vertices), np.asarray(other.faces), gamma=1.0).order is not first.order
+    n = len(sphere.vertices)
+    blocks = first.order.reshape(n, 4)
+    assert (blocks == blocks[:, :1] + np.arange(4)).all() and (blocks[:, 0] % 4 == 0).all()
+    assert np.array_equal(np.sort(blocks[:, 0] // 4), np.arange(n))
+    pattern = sp.csr_matrix((np.ones(len(first.rings[0])), first.rings[:2]), shape=(n, n)) + n * sp.eye(n)
+    expected = np.argsort(splu(pattern.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                               options={"SymmetricMode": True}).perm_c)
+    np.testing.assert_array_equal(blocks[:, 0] // 4, expected)
+
+
 def test_stiffness_leaves_transforms_varying_linearly_with_position_free():
     """The second-order stiffness (nricp.py) costs nothing for affine transforms that vary
     linearly with position, a twist among them, on a curved surface too, and does cost
