@@ -91,4 +91,5 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
 # Version 10: register v15's preconditioner.
 # Version 11: register v17's preconditioner.
 # Version 12: register v18's looser conjugate-gradient stop.
-STAGE = Stage(name=NAME, version=12, plan=plan, run=run, after=("remesh",))
+# Version 13: a frame fit's second soft step preconditioned by the first's factorisation (frame_carried_iterations).
+STAGE = Stage(name=NAME, version=13, plan=plan, run=run, after=("remesh",))

@@ -286,6 +286,46 @@ def test_systems_on_one_topology_share_one_fill_reducing_order():
     np.testing.assert_array_equal(blocks[:, 0] // 4, expected)
 
 
+def test_a_factor_is_carried_to_a_nearby_system_and_dropped_once_it_no_longer_serves():
+    """CarriedSolver solves every system to its tolerance whichever factor it holds (against a direct solve of
+    the moved vertices). It carries one factorisation to a slightly changed system (a frame fit's next soft
+    step), factorises a system far from it (a registration's next step, 100 times stiffer) and carries
+    nothing after that; with carried_iterations 0 (registrations) or carry=False (a fold repeat) every new
+    system is factorised."""
+    from scipy.sparse.linalg import spsolve
+
+    from meshsar_builder.geometry.nricp import _AmbergSystem
+    from meshsar_builder.geometry.nricp_solve import CarriedSolver, Operator, preconditioner
+
+    ico = trimesh.creation.icosphere(subdivisions=3)
+    system = _AmbergSystem(np.asarray(ico.vertices) * [1.0, 0.8, 0.6], np.asarray(ico.faces), gamma=1.0)
+    rng = np.random.default_rng(0)
+    targets = 1.05 * system.apply(system.identity()) + 0.01 * rng.standard_normal((system.n, 3))
+    weights = rng.uniform(0.5, 1.0, system.n)
+    systems = []
+    for alpha, scale in [(0.01, 1.0), (0.01, 1.02), (1.0, 1.0), (1.0, 1.02)]:  # nearby, far stiffer, nearby
+        stiffness = alpha**2 * system.stiffness(1.0 / system.spacing**4, np.zeros(len(system.edges)))
+        data, rhs = system.data(weights * scale, targets)
+        systems.append((Operator((stiffness + data).tocsr(), None, 0.0), rhs))
+
+    def factorised_systems(carried: int, carry: bool) -> list[int]:
+        factorised = []
+        solve = CarriedSolver(lambda m: factorised.append(m) or preconditioner(m, system.order), carried,
+                              rtol=1e-6, max_iterations=200)
+        x = system.identity()
+        for operator, rhs in systems:
+            solve.new_matrix(carry=carry)
+            x = solve(operator, rhs, x)
+            assert np.linalg.norm(operator @ x - rhs) <= 1e-6 * np.linalg.norm(rhs)
+            exact = spsolve(operator.matrix.tocsc(), rhs)
+            np.testing.assert_allclose(system.apply(x), system.apply(exact), atol=1e-5)
+        return [next(k for k, (operator, _) in enumerate(systems) if operator.matrix is m) for m in factorised]
+
+    assert factorised_systems(8, True) == [0, 2, 3]  # carried once, then dropped for good
+    assert factorised_systems(0, True) == [0, 1, 2, 3]
+    assert factorised_systems(8, False) == [0, 1, 2, 3]
+
+
 def test_stiffness_leaves_transforms_varying_linearly_with_position_free():
     """The second-order stiffness (nricp.py) costs nothing for affine transforms that vary
     linearly with position, a twist among them, on a curved surface too, and does cost

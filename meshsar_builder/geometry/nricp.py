@@ -56,7 +56,7 @@ from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.landmarks import face_labels
 from meshsar_builder.geometry.measures import edge_lengths, flipped_faces, unique_edges
 from meshsar_builder.geometry.meshing import closest_among, transfer_labels
-from meshsar_builder.geometry.nricp_solve import Operator, pcg, preconditioner, unknowns_order
+from meshsar_builder.geometry.nricp_solve import CarriedSolver, Operator, preconditioner, unknowns_order
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import simplify
 from meshsar_builder.geometry.surface_map import interpolation_matrix
@@ -460,6 +460,10 @@ def _fit(
     # than max_mean_mm), or whose faces turn over in numbers (divergence_flipped of them),
     # is stopped at once at its last fold-free step; the caller retries or rejects it.
     least, diverged, history = np.inf, None, []
+    # 3e-4, not 1e-4: 6-9 % faster demo fits, which lie as close (to 0.0003 mm) and 0.002-0.009 mm
+    # from the tighter solves' (1e-3: 0.06-0.10 mm, 3 % farther from the subject).
+    solve = CarriedSolver(lambda matrix: preconditioner(matrix, system.order), params.carried_iterations, rtol=3e-4,
+                          max_iterations=50)
     floor, too_many = params.max_mean_mm / scale, max(1, int(np.ceil(params.divergence_flipped * len(faces))))
     for step in steps:
         alpha, normal_power = params.stiffness[step], params.normal_weight[step]
@@ -470,7 +474,7 @@ def _fit(
         for attempt in range(params.fold_retries + 1):
             stiffness = alpha**2 * system.stiffness(vertex_weights, edge_weights)
             fit = system.apply(x_step)
-            factor = None
+            solve.new_matrix(carry=attempt == 0)  # a fold repeat's stiffened region: its own factor
             for iteration in range(params.step_iterations):
                 weights, targets, mean_distance = _matches(fit, faces, subject, template_area, params, normal_power,
                                                            distance)
@@ -486,11 +490,7 @@ def _fit(
                 matrix = Operator((stiffness + data).tocsr(), rows, beta)
                 if rows is not None:
                     rhs = rhs + beta * landmark_rhs
-                if factor is None:
-                    factor = preconditioner(matrix.matrix, system.order)
-                # 3e-4, not 1e-4: 6-9 % faster demo fits, which lie as close (to 0.0003 mm) and 0.002-0.009 mm
-                # from the tighter solves' (1e-3: 0.06-0.10 mm, 3 % farther from the subject).
-                x_step = pcg(matrix, rhs, x_step, factor, rtol=3e-4, max_iterations=50)
+                x_step = solve(matrix, rhs, x_step)
                 moved = system.apply(x_step)
                 change = np.linalg.norm(moved - fit, axis=1).mean()
                 fit = moved
@@ -522,6 +522,7 @@ def _fit(
         "steps_kept": steps_kept,
         "steps": steps.stop,
         "fold_repeats": repeats,
+        "factorisations": solve.factorisations,
         "stiffened_vertices": int((vertex_weights > base_weights).sum()),
         # Per step that still folded after its repeats, the fraction of it kept (0: none, the fit ends).
         "partial_steps": partials,
