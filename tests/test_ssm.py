@@ -249,3 +249,32 @@ def test_nearest_mean_distance_is_numpys_least_mean_norm():
         stack = np.ascontiguousarray(shapes[order])
         expected = np.linalg.norm(stack - verts, axis=2).mean(axis=1).min()
         assert nearest_mean_distance(stack, verts) == pytest.approx(expected, rel=1e-12)
+
+
+def test_a_worker_builds_the_stage_model_once_for_the_same_inputs(training, tmp_path, monkeypatch):
+    """stages/ssm.py: the items of one worker share the model of identical inputs (built once, read-only, equal
+    to a fresh build); a changed input file is a new model."""
+    import stages.ssm as stage
+    from meshsar_builder.geometry import ssm as ssm_module
+    from meshsar_builder.geometry.meshfile import write_ply
+
+    shapes, faces, _ = training
+    paths = []
+    for k, verts in enumerate([shapes[0], *shapes[:8]]):
+        paths.append(str(tmp_path / f"{k}.ply"))
+        write_ply(paths[-1], verts, faces, np.zeros(len(verts), np.uint8))
+    builds = []
+    monkeypatch.setattr(stage, "build_model", lambda *a, **k: builds.append(1) or ssm_module.build_model(*a, **k))
+    stage._built_model.cache_clear()
+    inputs = tuple((p, stage.sha256_file(p)) for p in paths)
+    first, again = stage._built_model(inputs, 0.98, 20), stage._built_model(inputs, 0.98, 20)
+    assert again is first and len(builds) == 1
+    model, kept = first
+    assert not model.mean.flags.writeable and not model.modes.flags.writeable and not kept.flags.writeable
+    fresh = ssm_module.build_model(shapes[:8], faces, 0.98, 20, labels=np.zeros(len(shapes[0]), np.uint8),
+                                   reference=shapes[0])
+    np.testing.assert_allclose(model.modes, fresh.modes, atol=1e-9)
+    write_ply(paths[3], shapes[9], faces, np.zeros(len(shapes[9]), np.uint8))
+    changed = tuple((p, stage.sha256_file(p)) for p in paths)
+    assert stage._built_model(changed, 0.98, 20) is not first and len(builds) == 2
+    stage._built_model.cache_clear()
