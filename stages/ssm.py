@@ -1,20 +1,20 @@
 """Stage `ssm`: the statistical shape model of the registered subjects, and its samples.
 
-Item `model`: Procrustes + PCA over every registered subject, `ssm/model.npz` (mean,
-modes, variances, template faces, per-vertex labels) and the model's compactness and
-generalisation. Items `samples/<c>` (side by side with it) each build the same model and
-draw `ssm.samples_per_item` consecutive samples of the `ssm.samples` shapes:
-`ssm/samples/ssm-NNNNN.ply`. Items `specificity/<c>` (`ssm.specificity_items` of them)
-each build the same model too and make every items-th of the `ssm.specificity_samples`
-specificity draws per mode count through the samples' own sampler (redraws included),
-from their own seed: `ssm/specificity/<c>.npz`. Once all are done, `ssm/report.json`
-(the stage's finish) holds compactness, generalisation and specificity per number of
-modes (vertex to vertex), the samples' redraws and the per-subject registration figures.
-Each sample is drawn from its own seed (recipe seed, stage, sample id), so a sample does
-not change when the sample count or the split into items does; self-intersecting draws
-are redrawn and counted. The model's frame is the template's (register/template.ply:
-canonical pose), and its modes have a fixed sign, so the order of the subjects changes
-nothing (version 3).
+Item `model`: Procrustes + PCA over every registered subject, `ssm/model.npz` (mean, modes,
+variances, template faces, per-vertex labels) and the model's compactness and
+generalisation. Items `samples/<c>` (side by side with it) each use the same model (a worker
+builds it once for its items) and draw `ssm.samples_per_item` consecutive samples of the
+`ssm.samples` shapes: `ssm/samples/ssm-NNNNN.ply`. Items `specificity/<c>`
+(`ssm.specificity_items` of them, listed first: the longest) use it too and make every
+items-th of the `ssm.specificity_samples` specificity draws per mode count through the
+samples' own sampler (redraws included), from their own seed: `ssm/specificity/<c>.npz`.
+Once all are done, `ssm/report.json` (the stage's finish) holds compactness, generalisation
+and specificity per number of modes (vertex to vertex), the samples' redraws and the
+per-subject registration figures. Each sample is drawn from its own seed (recipe seed,
+stage, sample id), so a sample does not change when the sample count or the split into items
+does; self-intersecting draws are redrawn and counted. The model's frame is the template's
+(register/template.ply: canonical pose), and its modes have a fixed sign, so the order of
+the subjects changes nothing (version 3).
 """
 
 from __future__ import annotations
@@ -52,9 +52,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     model = Item("model", ("model.npz",), inputs=inputs, params=params, data={"fits": fits})
     samples = [Item(part, tuple(f"samples/{sid}.ply" for sid in ids), inputs=inputs, params=params,
                     data={"sources": sources, "samples": ids}) for part, ids in sample_parts(ctx).items()]
-    # Longest first, so that the short sample parts even out the workers' ends: the stage's wall on
-    # two workers went from 60.3 s (the parts in plan order: the model, the samples, the specificity)
-    # to within a second of half its item time at paper scale.
+    # Longest first, so that the short sample parts even out the workers' ends: scheduled from a paper-scale
+    # build's item times, 61.1 s on two workers against 62.4 s with the model and the samples first.
     return [*(Item(part, (f"{part}.npz",), inputs=inputs, params=params, data={}) for part in specificity_parts(ctx)),
             model, *samples]
 
