@@ -88,7 +88,7 @@ class RegistrationParams:
     carried_iterations: conjugate-gradient iterations that a stiffness step's first solve runs with
         the previous step's factorisation before factorising its own (nricp_solve.CarriedSolver;
         0: every step factorises). A registration's steps move the fit far, so a carried factor
-        fails there (a whole-heart fit took 0.2-0.4 s longer): 0.
+        fails there (demo whole-heart fits took up to 0.5 s longer): 0.
     frame_carried_iterations: carried_iterations of a frame fit. Its soft steps start near the
         answer: with 8, its second step converges on the first step's factor in 6-8 iterations,
         one factorisation a fit instead of two (demo frame fits 2.0-2.5 s -> 1.7-2.1 s, each
