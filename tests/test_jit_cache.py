@@ -5,12 +5,14 @@ from __future__ import annotations
 import sys
 
 import numpy as np
+import trimesh
 from numba.core import types
 from numba.core.caching import NullCache
 from numba.core.registry import CPUDispatcher
 
 import meshsar_builder.radar.factorised as RF
 import meshsar_builder.radar.params as RP
+from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.ssm import SSMParams, build_model, specificity_draws
 
 
@@ -23,9 +25,10 @@ def cached_kernels() -> dict[str, CPUDispatcher]:
 
 def test_kernels_fed_other_memory_layouts_keep_one_specialisation_each():
     """The calls that used to compile a second layout: the factorised echo onto a strided sub-grid beside the
-    whole grid, and the specificity's distances to Fortran-ordered training shapes. Two specialisations of one
-    kernel compiled by two processes at once can swap their machine code in the cache; literal constants
-    (digital_topology's fixed arguments, compiled in one order inside their caller) do not count."""
+    whole grid, the specificity's distances to Fortran-ordered training shapes, and the self-intersection check of
+    read-only arrays (the ssm stage's shared model). Two specialisations of one kernel compiled by two processes
+    at once can swap their machine code in the cache; literal constants (digital_topology's fixed arguments,
+    compiled in one order inside their caller) do not count."""
     rng = np.random.default_rng(0)
     radar = RP.RadarParams(aperture=(24, 24), step_mm=6.0, echo_decimation=(1, 1, 1), loss_decimation=(1, 1, 1))
     normals = rng.normal(size=(400, 3))
@@ -43,6 +46,12 @@ def test_kernels_fed_other_memory_layouts_keep_one_specialisation_each():
     shapes = rng.normal(size=(6, 50, 3)) * [30.0, 20.0, 10.0]
     model = build_model(shapes, np.zeros((0, 3), dtype=np.int64), variance=0.9)
     specificity_draws(model, np.asfortranarray(shapes), rng, SSMParams(specificity_samples=4), 2)
+
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    verts, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64)
+    self_intersecting_faces(verts, faces)
+    verts.flags.writeable = faces.flags.writeable = False  # as the ssm stage's shared model
+    self_intersecting_faces(verts, faces)
 
     kernels = cached_kernels()
     for name in ("meshsar_builder.radar.factorised._spread_cluster",

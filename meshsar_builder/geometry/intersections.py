@@ -36,8 +36,10 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
     verts : (n, 3) float, faces : (m, 3) int  ->  (m,) bool
     """
-    verts = np.ascontiguousarray(verts, dtype=np.float64)
-    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    # Writeable C arrays, whatever comes in (the ssm stage's shared model is read-only): numba compiles a
+    # kernel once per array type, and a second specialisation can swap machine code in the cache (radar/jit.py).
+    verts = np.require(verts, dtype=np.float64, requirements=["C", "W"])
+    faces = np.require(faces, dtype=np.int64, requirements=["C", "W"])
     if len(faces) < 2:
         return np.zeros(len(faces), dtype=bool)
     if not np.isfinite(verts).all():
