@@ -22,6 +22,8 @@ from meshsar_builder.geometry.ssm import (
 )
 from meshsar_builder.pipeline.errors import MeshError
 
+from .conftest import MANIFESTS
+
 TRUE_VARIANCES = np.array([16.0, 4.0, 1.0])  # mm^2
 N_SHAPES = 30
 
@@ -278,3 +280,17 @@ def test_a_worker_builds_the_stage_model_once_for_the_same_inputs(training, tmp_
     changed = tuple((p, stage.sha256_file(p)) for p in paths)
     assert stage._built_model(changed, 0.98, 20) is not first and len(builds) == 2
     stage._built_model.cache_clear()
+
+
+def test_the_stage_lists_its_longest_items_first(tmp_path):
+    """stages/ssm.py's plan: the specificity parts (most of the stage's time) before the model and the short
+    sample parts, so that the sample parts even out two workers' ends."""
+    import stages.ssm as stage
+    from meshsar_builder.pipeline import recipe as R
+    from meshsar_builder.pipeline.runner import Context, Results
+
+    recipe = R.override(R.load(MANIFESTS / "smoke.toml"), "ssm", "samples_per_item", 2, "test")
+    results = Results(done={"register": {f"s{i}": {"fit": {}, "subject": f"s{i}", "source": "x"} for i in range(3)}})
+    ids = [item.id for item in stage.plan(Context(out=tmp_path, recipe=recipe), results)]
+    parts = [f"specificity/{c}" for c in range(recipe.ssm.specificity_items)]
+    assert ids == [*parts, "model", "samples/0", "samples/1"]
