@@ -92,4 +92,6 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
 # Version 11: register v17's preconditioner.
 # Version 12: register v18's looser conjugate-gradient stop.
 # Version 13: a frame fit's second soft step preconditioned by the first's factorisation (frame_carried_iterations).
-STAGE = Stage(name=NAME, version=13, plan=plan, run=run, after=("remesh",))
+# Version 14: register v19's preconditioner and tolerance; each step factorises its own matrix again (it costs less
+# than the carried factor's extra iterations).
+STAGE = Stage(name=NAME, version=14, plan=plan, run=run, after=("remesh",))

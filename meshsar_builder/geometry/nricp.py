@@ -40,7 +40,7 @@ Two further additions over the paper, both for thin vessels joined to chambers:
   term is needed there: the second-order one leaves a linearly varying transform free, and such a
   field can turn faces over.
 Speed: the system changes only in its 4 x 4 diagonal data blocks between iterations of one
-step, so it is factorised once per step (SuperLU, the vertices in minimum degree order; again
+step, so it is factorised once per step (CHOLMOD, the vertices in minimum degree order; again
 after a fold-guard repeat changes the stiffness) and that factorisation preconditions
 warm-started conjugate gradients in every iteration (nricp_solve.py); and the stiffest step runs on a coarse
 copy of the template (_coarse_start).
@@ -56,7 +56,7 @@ from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.landmarks import face_labels
 from meshsar_builder.geometry.measures import edge_lengths, flipped_faces, unique_edges
 from meshsar_builder.geometry.meshing import closest_among, transfer_labels
-from meshsar_builder.geometry.nricp_solve import CarriedSolver, Operator, preconditioner, unknowns_order
+from meshsar_builder.geometry.nricp_solve import Operator, pcg, preconditioner, unknowns_order
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import simplify
 from meshsar_builder.geometry.surface_map import interpolation_matrix
@@ -460,10 +460,7 @@ def _fit(
     # than max_mean_mm), or whose faces turn over in numbers (divergence_flipped of them),
     # is stopped at once at its last fold-free step; the caller retries or rejects it.
     least, diverged, history = np.inf, None, []
-    # 3e-4, not 1e-4: 6-9 % faster demo fits, which lie as close (to 0.0003 mm) and 0.002-0.009 mm
-    # from the tighter solves' (1e-3: 0.06-0.10 mm, 3 % farther from the subject).
-    solve = CarriedSolver(lambda matrix: preconditioner(matrix, system.order), params.carried_iterations, rtol=3e-4,
-                          max_iterations=50)
+    factorisations = 0
     floor, too_many = params.max_mean_mm / scale, max(1, int(np.ceil(params.divergence_flipped * len(faces))))
     for step in steps:
         alpha, normal_power = params.stiffness[step], params.normal_weight[step]
@@ -474,7 +471,7 @@ def _fit(
         for attempt in range(params.fold_retries + 1):
             stiffness = alpha**2 * system.stiffness(vertex_weights, edge_weights)
             fit = system.apply(x_step)
-            solve.new_matrix(carry=attempt == 0)  # a fold repeat's stiffened region: its own factor
+            precondition = None  # a new stiffness (a fold repeat's too): a new factorisation
             for iteration in range(params.step_iterations):
                 weights, targets, mean_distance = _matches(fit, faces, subject, template_area, params, normal_power,
                                                            distance)
@@ -490,7 +487,11 @@ def _fit(
                 matrix = Operator((stiffness + data).tocsr(), rows, beta)
                 if rows is not None:
                     rhs = rhs + beta * landmark_rhs
-                x_step = solve(matrix, rhs, x_step)
+                if precondition is None:
+                    precondition, factorisations = preconditioner(matrix.matrix, system.order), factorisations + 1
+                # 1e-4: at 3e-4 the fits were 9-12 % faster but moved with the preconditioner's rounding (a smoke
+                # subject's least label agreement 0.979 with SuperLU's LU, 0.966 with CHOLMOD's factor).
+                x_step = pcg(matrix, rhs, x_step, precondition, rtol=1e-4, max_iterations=50)
                 moved = system.apply(x_step)
                 change = np.linalg.norm(moved - fit, axis=1).mean()
                 fit = moved
@@ -522,7 +523,7 @@ def _fit(
         "steps_kept": steps_kept,
         "steps": steps.stop,
         "fold_repeats": repeats,
-        "factorisations": solve.factorisations,
+        "factorisations": factorisations,
         "stiffened_vertices": int((vertex_weights > base_weights).sum()),
         # Per step that still folded after its repeats, the fraction of it kept (0: none, the fit ends).
         "partial_steps": partials,

@@ -1,5 +1,5 @@
 """The sparse linear algebra of the NRICP fit (nricp.py): its system's operator, the conjugate
-gradients that solve it, their sparse-LU preconditioner and the fill-reducing order of its unknowns.
+gradients that solve it, their sparse Cholesky preconditioner and the fill-reducing order of its unknowns.
 """
 
 from __future__ import annotations
@@ -8,6 +8,8 @@ import functools
 
 import numpy as np
 import scipy.sparse as sp
+from cvxopt import cholmod, spmatrix
+from cvxopt import matrix as cvx_matrix
 from scipy.sparse.linalg import splu
 
 from meshsar_builder.geometry.measures import unique_edges
@@ -27,12 +29,11 @@ class Operator:
 
 
 def pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float,
-        max_iterations: int) -> tuple[np.ndarray, bool]:
+        max_iterations: int) -> np.ndarray:
     """Preconditioned conjugate gradients for a symmetric positive definite system, columns at once.
 
     The residual is tested before each preconditioning, so no solve is spent once it is small
     (a warm start from the previous iteration is often there after one step).
-    Returns the solution and whether every column reached rtol.
     """
     x = start.copy()
     residual = rhs - matrix @ x
@@ -40,7 +41,7 @@ def pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float,
     direction, rz = np.zeros_like(x), np.zeros(x.shape[1])
     for _ in range(max_iterations):
         if np.all(np.linalg.norm(residual, axis=0) <= goal):
-            return x, True
+            return x
         z = precondition(residual)
         rz_new = np.sum(residual * z, axis=0)
         direction = z + np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0) * direction
@@ -50,63 +51,51 @@ def pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float,
         step = np.divide(rz, curvature, out=np.zeros_like(rz), where=curvature > 0)
         x += step * direction
         residual -= step * k_dir
-    return x, bool(np.all(np.linalg.norm(residual, axis=0) <= goal))
-
-
-class CarriedSolver:
-    """The conjugate gradients of one fit, with an LU preconditioner carried across its stiffness steps
-    while that still pays.
-
-    A factorisation is most of a fit's time (two of a frame fit's 2.2 s on the demo). Within a step the
-    matches change the matrix, and the step's own factor still converges in 1-3 iterations. A factor carried
-    to the next step (another stiffness) gets `carried_iterations`; a solve that needs more is done again
-    from its start on its own matrix's factorisation, as without carrying, and the fit carries no factor
-    after that. A frame fit's two soft steps start near the answer and share one factor; a registration's
-    steps move the fit far, so its first carried solve fails and it stops carrying.
-    factorise : csr matrix -> its preconditioner (r -> A^-1 r).
-    """
-
-    def __init__(self, factorise, carried_iterations: int, rtol: float, max_iterations: int):
-        self.factorise, self.carried_iterations = factorise, carried_iterations
-        self.rtol, self.max_iterations = rtol, max_iterations
-        self.precondition, self.current, self.carrying, self.factorisations = None, False, carried_iterations > 0, 0
-
-    def new_matrix(self, carry: bool) -> None:
-        """The stiffness changed: the factor in hand is carried (carry, while carrying pays) or dropped."""
-        self.current = False
-        if not (carry and self.carrying):
-            self.precondition = None
-
-    def __call__(self, operator: Operator, rhs: np.ndarray, start: np.ndarray) -> np.ndarray:
-        if self.precondition is not None and not self.current:
-            x, done = pcg(operator, rhs, start, self.precondition, self.rtol, self.carried_iterations)
-            if done:
-                return x
-            self.carrying = False  # and start again: a poor preconditioner's iterates drift where K is weak
-        if not self.current:
-            self.precondition, self.current = self.factorise(operator.matrix), True
-            self.factorisations += 1
-        return pcg(operator, rhs, start, self.precondition, self.rtol, self.max_iterations)[0]
+    return x
 
 
 def preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
-    """r -> A^-1 r for the sparse part A of K = A + beta R^T R: its LU (unknowns in `order`, a fill-reducing order).
+    """r -> A^-1 r for the sparse part A of K = A + beta R^T R: its Cholesky factor (unknowns in `order`, a
+    fill-reducing order), from CHOLMOD's supernodal factorisation (through cvxopt).
 
     The landmark part, rank k but dense over each structure's vertices, is left to the conjugate gradients
     (Woodbury's identity cost k more solves per factorisation than it saved: fits 10-12 % faster without it, at
-    1,500 and 6,000 vertices, the same distances to 4 digits). The LU is in single precision: it only
-    preconditions the conjugate gradients, which run in double and stop at a relative residual of 3e-4, 3 orders
-    above its rounding (two demo whole-heart fits: 15-19 % faster, the same figures). SuperLU's own supernode
-    relaxation and panel size: relaxed to 80 columns in panels of 20, the factorisation was 10-15 % faster, but
-    SuperLU then wrote past its buffers (glibc's checks abort within 25 factorisations of a small
-    ellipsoid's fits; 30 and 40 columns as well), which crashed test processes at random.
+    1,500 and 6,000 vertices, the same distances to 4 digits). On a demo frame fit's first matrix (19,316
+    unknowns, one core) CHOLMOD factorises in 0.23-0.28 s where SuperLU's single-precision LU took 0.80 s: its
+    supernodes are dense blocks for BLAS, and a Cholesky factor is half an LU. Its solves (28 ms for 3
+    right-hand sides) are no slower, and in double precision they leave a fifth of the LU's residual.
+    A is positive definite only up to rounding: with few matches the data term pins its global affine motions
+    weakly, and CHOLMOD met a non-positive pivot in the last columns of that matrix. A diagonal shift of 1e-9 of
+    the largest diagonal entry (larger ones where that is not enough) keeps it positive: the factor only
+    preconditions the conjugate gradients, which still solve K itself.
     """
-    factor = splu(matrix[order][:, order].tocsc().astype(np.float32), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                  options={"SymmetricMode": True})
+    n = matrix.shape[0]
+    rank = np.empty_like(order)
+    rank[order] = np.arange(n)
+    entries = matrix.tocoo()
+    rows, cols = rank[entries.row], rank[entries.col]
+    lower = rows >= cols
+    rows, cols, values = rows[lower].astype(np.int64), cols[lower].astype(np.int64), entries.data[lower]
+    diagonal = np.where(rows == cols, np.abs(values).max(), 0.0)
+    cholmod.options["supernodal"] = 2
+    factor = None
+    for shift in (1e-9, 1e-6, 1e-3):
+        lower_part = spmatrix(cvx_matrix(values + shift * diagonal), cvx_matrix(rows), cvx_matrix(cols), (n, n))
+        if factor is None:  # the pattern is the same for every shift; the unknowns are already in order
+            factor = cholmod.symbolic(lower_part, p=cvx_matrix(np.arange(n, dtype=np.int64)), uplo="L")
+        try:
+            cholmod.numeric(lower_part, factor)
+            break
+        except ArithmeticError:
+            continue
+    else:
+        raise ArithmeticError(f"NRICP preconditioner: the system ({n} unknowns) is not positive definite")
 
     def solve(residual: np.ndarray) -> np.ndarray:
+        ordered = cvx_matrix(np.asfortranarray(residual[order], dtype=np.float64))
+        cholmod.solve(factor, ordered)
         solved = np.empty_like(residual)
-        solved[order] = factor.solve(residual[order].astype(np.float32))
+        solved[order] = np.asarray(ordered).reshape(residual[order].shape)
         return solved
 
     return solve

@@ -85,14 +85,6 @@ class RegistrationParams:
         fell under 0.97).
     frame_steps: how many of the softest stiffness steps a frame of a beating subject runs when
         fitted by its reference frame's mesh, warm-started from its neighbour's fit (tracking.py).
-    carried_iterations: conjugate-gradient iterations that a stiffness step's first solve runs with
-        the previous step's factorisation before factorising its own (nricp_solve.CarriedSolver;
-        0: every step factorises). A registration's steps move the fit far, so a carried factor
-        fails there (demo whole-heart fits took up to 0.5 s longer): 0.
-    frame_carried_iterations: carried_iterations of a frame fit. Its soft steps start near the
-        answer: with 8, its second step converges on the first step's factor in 6-8 iterations,
-        one factorisation a fit instead of two (demo frame fits 2.0-2.5 s -> 1.7-2.1 s, each
-        within 0.05 mm of the fit with two); with 5 every second step still factorised.
     groupwise_smoothing: most Taubin steps on a groupwise template to clear self-
         intersections and flipped faces of the plain mean before the round fails.
     coarse_steps: how many of the stiffest stiffness steps (at most all but the last) run on the
@@ -138,8 +130,6 @@ class RegistrationParams:
     retry_stiffening: float = 4.0
     groupwise_max_distance_mm: float = 25.0
     frame_steps: int = 2
-    carried_iterations: int = 0
-    frame_carried_iterations: int = 8
     frame_min_label_agreement: float = 0.95
     ring_points: int = 0
     frame_ring_points: int = 8
@@ -156,9 +146,6 @@ class RegistrationParams:
             raise ValueError(f"max_mean_mm: must be > 0, got {self.max_mean_mm}")
         if not self.max_p95_mm > 0:
             raise ValueError(f"max_p95_mm: must be > 0, got {self.max_p95_mm}")
-        for name in ("carried_iterations", "frame_carried_iterations"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
         if self.icp_points < 10:
             raise ValueError(f"icp_points: must be >= 10, got {self.icp_points}")
         if not self.stiffness or any(not s > 0 for s in self.stiffness):
