@@ -61,13 +61,14 @@ def preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
     The landmark part, rank k but dense over each structure's vertices, is left to the conjugate gradients
     (Woodbury's identity cost k more solves per factorisation than it saved: fits 10-12 % faster without it, at
     1,500 and 6,000 vertices, the same distances to 4 digits). On a demo frame fit's first matrix (19,316
-    unknowns, one core) CHOLMOD factorises in 0.23-0.28 s where SuperLU's single-precision LU took 0.80 s: its
-    supernodes are dense blocks for BLAS, and a Cholesky factor is half an LU. Its solves (28 ms for 3
-    right-hand sides) are no slower, and in double precision they leave a fifth of the LU's residual.
-    A is positive definite only up to rounding: with few matches the data term pins its global affine motions
-    weakly, and CHOLMOD met a non-positive pivot in the last columns of that matrix. A diagonal shift of 1e-9 of
-    the largest diagonal entry (larger ones where that is not enough) keeps it positive: the factor only
-    preconditions the conjugate gradients, which still solve K itself.
+    unknowns, one core) CHOLMOD factorises in 0.20-0.23 s (0.05 s more for its symbolic analysis and the
+    conversion) where SuperLU's single-precision LU took 0.80 s: its supernodes are dense blocks for BLAS, and a
+    Cholesky factor is half an LU. Its solves (21-28 ms for 3 right-hand sides) are no slower, and in double
+    precision they leave a sixth of the LU's residual. A is semi-definite: transforms that move no vertex cost
+    nothing (a small fit's matrix has eigenvalues within 1e-12 of zero), and CHOLMOD met a non-positive pivot in
+    the last columns of that demo matrix. A diagonal shift of 1e-9 of the largest entry (larger ones where that
+    is not enough) keeps the factorisation going: the factor only preconditions the conjugate gradients, which
+    still solve K itself.
     """
     n = matrix.shape[0]
     rank = np.empty_like(order)
@@ -77,7 +78,7 @@ def preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
     lower = rows >= cols
     rows, cols, values = rows[lower].astype(np.int64), cols[lower].astype(np.int64), entries.data[lower]
     diagonal = np.where(rows == cols, np.abs(values).max(), 0.0)
-    cholmod.options["supernodal"] = 2
+    cholmod.options["supernodal"] = 2  # always: CHOLMOD's automatic choice may go simplicial on small systems
     factor = None
     for shift in (1e-9, 1e-6, 1e-3):
         lower_part = spmatrix(cvx_matrix(values + shift * diagonal), cvx_matrix(rows), cvx_matrix(cols), (n, n))
