@@ -28,8 +28,7 @@ class Operator:
         return product
 
 
-def pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float,
-        max_iterations: int) -> np.ndarray:
+def pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float, max_iterations: int) -> np.ndarray:
     """Preconditioned conjugate gradients for a symmetric positive definite system, columns at once.
 
     The residual is tested before each preconditioning, so no solve is spent once it is small
@@ -41,7 +40,7 @@ def pcg(matrix, rhs: np.ndarray, start: np.ndarray, precondition, rtol: float,
     direction, rz = np.zeros_like(x), np.zeros(x.shape[1])
     for _ in range(max_iterations):
         if np.all(np.linalg.norm(residual, axis=0) <= goal):
-            return x
+            break
         z = precondition(residual)
         rz_new = np.sum(residual * z, axis=0)
         direction = z + np.divide(rz_new, rz, out=np.zeros_like(rz), where=rz > 0) * direction
@@ -96,7 +95,7 @@ def preconditioner(matrix: sp.csr_matrix, order: np.ndarray):
         ordered = cvx_matrix(np.asfortranarray(residual[order], dtype=np.float64))
         cholmod.solve(factor, ordered)
         solved = np.empty_like(residual)
-        solved[order] = np.asarray(ordered).reshape(residual[order].shape)
+        solved[order] = np.asarray(ordered).reshape(residual.shape)
         return solved
 
     return solve
