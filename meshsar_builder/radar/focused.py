@@ -351,10 +351,12 @@ def focused_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor
     faces = torch.as_tensor(faces, dtype=torch.long, device=verts.device)
     if masks is None:
         masks = occlusion_masks(verts, faces, setup.probes[: targets.shape[1]])  # V x (B, m), one scene a mesh
-    terms = []
-    for v in range(targets.shape[1]):
-        pred = setup.predicted(verts, faces, v, masks[v]).flatten(1)  # (B, N)
-        tgt = targets[:, v].to(pred).flatten(1)
-        cos = (pred * tgt).sum(1) / (pred.norm(dim=1) * tgt.norm(dim=1)).clamp_min(1e-30)
-        terms.append(1 - cos)
+    terms = [cosine_distance(setup.predicted(verts, faces, v, masks[v]), targets[:, v]) for v in range(targets.shape[1])]
     return torch.stack(terms).mean()
+
+
+def cosine_distance(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B,) 1 - cos(predicted, target) of each sample's volume: predicted, target (B, ...) (one view's volumes)."""
+    pred = predicted.flatten(1)  # (B, N)
+    tgt = target.to(pred).flatten(1)  # (B, N)
+    return 1 - (pred * tgt).sum(1) / (pred.norm(dim=1) * tgt.norm(dim=1)).clamp_min(1e-30)  # (B,)

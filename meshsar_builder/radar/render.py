@@ -37,6 +37,41 @@ def noise_scale(signal_power: float, signal_peak: float, noise_rms: float, radar
     return signal_peak / noise_rms / 10 ** (radar.image_snr_db / 20)
 
 
+def _view_signal(tri, points, diffuse, vis, radar: RadarParams, view: str, freqs, view_echo, diffuse_on):
+    """One view's noise-free echo (Nx, Ny, Nf) complex of the facets that it sees (vis > 0), the diffuse part's
+    own mean power on the diffuse_on grid (None without a diffuse part) and its visible scatterers' count."""
+    seen = vis > 0
+    grid = aperture(radar, view)  # the numba echo factorises on the grid
+    lit = seen_by(*diffuse, vis) if diffuse is not None else None
+    if lit is None:
+        signal = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen])
+        return signal.reshape(*radar.aperture, radar.n_samples), None, 0
+    signal, diffuse_echo = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen],
+                                     diffuse=(*lit, lambert(radar)), diffuse_on=diffuse_on)
+    return (signal.reshape(*radar.aperture, radar.n_samples), float(np.mean(np.abs(diffuse_echo) ** 2)),
+            len(lit[2]))
+
+
+def specular_loss_echo(verts: np.ndarray, faces: np.ndarray, radar: RadarParams) -> np.ndarray:
+    """The noise-free echo (V, Lx, Ly, Lf) complex64 of a mesh's specular part on loss_grid(radar), as render_sample
+    computes echo_clean (the full echo sub-sampled), with no diffuse part: `meshsar bench radar-loss` scans
+    candidate meshes with it (facet "random" would draw its points from a generator seeded 0).
+
+    verts : (n, 3) float mm, heart frame; faces : (F, 3) int.
+    """
+    verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces)
+    points = scatterer_points(verts, faces, radar.facet, np.random.default_rng(0))
+    intersector = embree_intersector(verts, faces)
+    keep_loss = np.ix_(*grid_indices(radar, radar.loss_decimation))
+    view_echo, _ = view_functions(radar.device)
+    out = []
+    for view in radar.views:
+        vis, _ = visibility(verts, faces, probe_points(radar, view), intersector)
+        signal = _view_signal(verts[faces], points, None, vis, radar, view, frequencies(radar), view_echo, None)[0]
+        out.append(signal[keep_loss].astype(np.complex64))
+    return np.stack(out)
+
+
 def view_functions(device: str):
     """(echo, view_volume) of a view for radar.device: the numba echo and numpy imaging on "cpu", else torch's.
 
@@ -117,18 +152,9 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         vis, rays = visibility(verts, faces, probe_points(radar, view), intersector)
         t1 = time.perf_counter()
         seen = vis > 0
-        grid = aperture(radar, view)  # the numba echo factorises on the grid
-        lit = seen_by(*diffuse, vis) if diffuse is not None else None
-        diffuse_power, n_scatterers = None, 0
-        if lit is None:
-            signal = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen])
-        else:  # and the diffuse part's own power, where the shards keep the echo
-            signal, diffuse_echo = view_echo(tri[seen], vis[seen], grid, freqs, radar, points=points[seen],
-                                             diffuse=(*lit, lambert(radar)), diffuse_on=echo_indices)
-            n_scatterers = len(lit[2])
-            diffuse_power = float(np.mean(np.abs(diffuse_echo) ** 2))
+        signal, diffuse_power, n_scatterers = _view_signal(tri, points, diffuse, vis, radar, view, freqs, view_echo,
+                                                           echo_indices)
         t2 = time.perf_counter()
-        signal = signal.reshape(shape)
         signal_power = float(np.mean(np.abs(signal) ** 2))
         noise = unit_noise(shape, seed) if noisy else None
         volume = volume_of(signal, freqs, x_mm, y_mm, radar.z0_mm, images)
