@@ -17,7 +17,8 @@ Parts:
   with `--device cuda` on a GPU in fp32 and mixed precision (bench_trainer);
 - radar-loss: the radar losses' landscapes (minimum, monotone rise, gradient cosine)
   on 5 samples of a build, $MESHSAR_BENCH_DATA or build/demo (bench/radar_loss.py;
-  $MESHSAR_BENCH_SAMPLES, $MESHSAR_BENCH_LOSSES = focused,raw bound a run);
+  $MESHSAR_BENCH_SAMPLES, $MESHSAR_BENCH_LOSSES = focused,raw bound a run; `exact` adds
+  the production echo as a reference model, about 4 minutes a sample);
 - speckle: the diffuse component's statistics and cost (bench/speckle.py);
 - inference: seconds per sample for `meshsar fit` and `--refine` on 3 shape-model test
   samples of the same build, against their budgets (bench/inference.py).
