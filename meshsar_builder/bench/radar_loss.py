@@ -21,12 +21,13 @@ Targets (each `met` holds for every sample; issue 28):
 The raw L1 (the paper's) is measured with the trainer's code on a fixed subset of
 RAW_ANTENNAS antennas per view (all its frequencies) to bound its cost: a dense echo per
 evaluation is seconds a view on a CPU. `exact` (ExactEvaluator, entry exact_specular) is a
-reference that no trainer runs: the production echo of each candidate, about 1.5 s an evaluation
-on one core, so about 6 minutes a sample.
+reference that no trainer runs: the production echo of each candidate, about 0.8 s an evaluation
+on one core, so 3-4 minutes a sample.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -209,8 +210,6 @@ class ExactEvaluator:
     differentiable = False
 
     def __init__(self, setup, radar, view_index, truth_verts: np.ndarray, truth_faces: np.ndarray, faces: np.ndarray):
-        import dataclasses
-
         self.setup, self.view_index, self.faces = setup, view_index, faces
         self.radar = dataclasses.replace(radar, diffuse=False)
         self.target = torch.from_numpy(self.volumes(truth_verts, truth_faces))
