@@ -31,7 +31,7 @@ from meshsar_builder.pipeline.io import atomic_path
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 from meshsar_builder.pipeline.seeding import item_rng
 from meshsar_builder.radar.diffuse import draw_scatterers
-from meshsar_builder.radar.render import render_sample
+from meshsar_builder.radar.render import compile_kernels, render_sample
 
 NAME = "radar"
 
@@ -178,4 +178,8 @@ def run(ctx: Context, item: Item) -> dict:
 # v11's on the demo heart), and the images' padded grid is 165 x 165 (was 162), so that inverse FFTs land on the
 # pixels: the complex volumes grow by (165 / 162)^2 (their sums have more terms; every channel is a ratio) and the
 # demo heart's intensity channels move by at most 0.003, its depth channels on 0.04 % of the pixels.
-STAGE = Stage(name=NAME, version=12, plan=plan, run=run, resources=resources, check=check)
+def warm(ctx: Context) -> None:
+    compile_kernels(ctx.recipe.radar, ctx.recipe.images)
+
+
+STAGE = Stage(name=NAME, version=12, plan=plan, run=run, resources=resources, check=check, warm=warm)

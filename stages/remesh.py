@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+from meshsar_builder.geometry.intersections import compile_kernels
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.meshing import transfer_labels
 from meshsar_builder.geometry.remesh import mesh_checks, remesh
@@ -39,4 +40,8 @@ def run(ctx: Context, item: Item) -> dict:
 
 # Version 2: a dense input's first remeshing iteration runs unchecked, then its vertices go back onto the
 # input (geometry/remesh.py _coarsen_onto).
-STAGE = Stage(name=NAME, version=2, plan=plan, run=run)
+def warm(ctx: Context) -> None:
+    compile_kernels()  # the surface checks' self-intersection test
+
+
+STAGE = Stage(name=NAME, version=2, plan=plan, run=run, warm=warm)

@@ -379,3 +379,44 @@ def test_a_local_dask_cluster_keeps_its_periodic_work_off_the_items():
         assert list(pool.client.run(settings).values()) == [QUIET_DASK]
     finally:
         pool.close()
+
+
+def _record_warm(path, ctx):
+    import os
+    import threading
+
+    with open(path, "a") as out:
+        out.write(f"{os.getpid()} {threading.current_thread().name}\n")
+
+
+def _failing_warm(ctx):
+    raise RuntimeError("no compiler here")
+
+
+def test_warm_hooks_run_once_in_the_builds_process_when_it_has_workers(tmp_path):
+    """Stage.warm: once per stage, in a thread of the build's own process, with workers only; a hook that
+    fails leaves the build to its items."""
+    import dataclasses
+    import functools
+    import os
+    import time
+
+    from meshsar_builder.pipeline.runner import Context, LocalPool, Results, run_stages
+
+    record = tmp_path / "warm.txt"
+    stages = {"a": dataclasses.replace(_toy_stage("a", [0.0]), warm=_failing_warm),
+              "b": dataclasses.replace(_toy_stage("b", [0.5]), warm=functools.partial(_record_warm, str(record)))}
+    pool = LocalPool(2)
+    try:
+        results = Results()
+        run_stages(Context(out=tmp_path / "pool", recipe=None), stages, results, pool)
+    finally:
+        pool.close()
+    assert results.failures == [] and len(results.of("b")) == 1
+    for _ in range(100):  # the hook's thread is a daemon: give it its moment
+        if record.exists():
+            break
+        time.sleep(0.05)
+    assert record.read_text() == f"{os.getpid()} warm-kernels\n"
+    run_stages(Context(out=tmp_path / "serial", recipe=None), stages, Results())  # items in this process: no hooks
+    assert record.read_text().count("\n") == 1

@@ -49,6 +49,13 @@ def self_intersecting_faces(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return _self_intersections(verts, faces, _CELL)
 
 
+def compile_kernels() -> None:
+    """Compile the check's kernels, or load them from numba's on-disk cache, on a tetrahedron (a build's
+    warm-up: Stage.warm): the same array types as every mesh, so the same compiled code."""
+    corners = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    self_intersecting_faces(corners, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+
+
 # The narrow phase works on the rows of an (8, 3) scratch array P (the pair's six corners and
 # two segment ends), named by row: views and temporaries in the pair loop cost more than the tests.
 # Explicit signatures: numba would otherwise compile a version for every literal row number

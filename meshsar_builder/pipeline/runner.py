@@ -109,6 +109,10 @@ class Stage:
     # The stages whose records or files this stage reads; None: every stage before it in STAGE_ORDER.
     # With a pool, a stage starts once these have finished, beside any other stage that may run then.
     after: tuple[str, ...] | None = None
+    # Compiles what the stage's items will run (numba's on-disk cache) on a small input, in this process while
+    # earlier stages run, when the build has workers (run_stages): each worker then loads the kernels instead of
+    # compiling them itself, as every worker of a fresh checkout's first build otherwise does at once.
+    warm: Callable[[Context], object] | None = None
 
 
 @dataclass
@@ -473,6 +477,9 @@ def run_stages(ctx: Context, stages: dict[str, Stage], results: Results, pool=No
         except BaseException as e:  # to the main thread, which stops the build
             finished.put((name, e))
 
+    hooks = [stage.warm for stage in stages.values() if stage.warm is not None]
+    if hooks:
+        threading.Thread(target=_warm, args=(ctx, hooks), name="warm-kernels", daemon=True).start()
     threads: dict[str, threading.Thread] = {}
     done: set[str] = set()
     try:
@@ -494,6 +501,17 @@ def run_stages(ctx: Context, stages: dict[str, Stage], results: Results, pool=No
         order = {name: i for i, name in enumerate(names)}
         results.summary.sort(key=lambda row: order[row["stage"]])
         results.failures.sort(key=lambda f: order.get(f["stage"], len(order)))  # stable: items keep their order
+
+
+def _warm(ctx: Context, hooks: list) -> None:
+    """Stage.warm hooks one after another, on one BLAS thread (the workers hold the cores). A hook's error is
+    left to the items: they meet it themselves and record it where the build reports failures."""
+    with threadpool_limits(limits=1):
+        for hook in hooks:
+            try:
+                hook(ctx)
+            except Exception:  # noqa: BLE001 (the items record it)
+                continue
 
 
 def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None, force: tuple[str, ...] = (),

@@ -6,6 +6,7 @@ import math
 import time
 
 import numpy as np
+import trimesh
 
 from meshsar_builder.radar.appearance import surface_depth, view_appearance
 from meshsar_builder.radar.diffuse import Scatterers, draw_scatterers, lambert, place, seen_by
@@ -70,6 +71,17 @@ def specular_loss_echo(verts: np.ndarray, faces: np.ndarray, radar: RadarParams)
         signal = _view_signal(verts[faces], points, None, vis, radar, view, frequencies(radar), view_echo, None)[0]
         out.append(signal[keep_loss].astype(np.complex64))
     return np.stack(out)
+
+
+def compile_kernels(radar: RadarParams, images: ImageParams) -> None:
+    """Compile the radar's CPU kernels, or load them from numba's on-disk cache (a build's warm-up: Stage.warm):
+    render_sample of a 30 mm sphere with these parameters, which runs every kernel that a heart runs (the facet
+    and scatterer series, the factorised echo's interpolation, the focusing) on the same array types. Nothing
+    for another device."""
+    if radar.device != "cpu":
+        return
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
+    render_sample(np.asarray(sphere.vertices), np.asarray(sphere.faces), radar, images, np.random.default_rng(0))
 
 
 def view_functions(device: str):
