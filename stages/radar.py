@@ -158,6 +158,10 @@ def run(ctx: Context, item: Item) -> dict:
             "device": ctx.recipe.radar.device}
 
 
+def warm(ctx: Context) -> None:
+    compile_kernels(ctx.recipe.radar, ctx.recipe.images)
+
+
 # Version 2: the physical-optics facet echo and the image-domain noise floor (image_snr_db).
 # Version 3: echo_clean on the loss grid, and noise drawn from a stored uint64 seed per view.
 # Version 4: frames of a subject share its ED (or first) frame's centre.
@@ -178,8 +182,4 @@ def run(ctx: Context, item: Item) -> dict:
 # v11's on the demo heart), and the images' padded grid is 165 x 165 (was 162), so that inverse FFTs land on the
 # pixels: the complex volumes grow by (165 / 162)^2 (their sums have more terms; every channel is a ratio) and the
 # demo heart's intensity channels move by at most 0.003, its depth channels on 0.04 % of the pixels.
-def warm(ctx: Context) -> None:
-    compile_kernels(ctx.recipe.radar, ctx.recipe.images)
-
-
 STAGE = Stage(name=NAME, version=12, plan=plan, run=run, resources=resources, check=check, warm=warm)

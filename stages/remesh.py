@@ -38,10 +38,10 @@ def run(ctx: Context, item: Item) -> dict:
     return {**checks, "volume_ml": checks["volume_mm3"] / 1000, "center_mm": ((lo + hi) / 2).tolist(), **item.data}
 
 
-# Version 2: a dense input's first remeshing iteration runs unchecked, then its vertices go back onto the
-# input (geometry/remesh.py _coarsen_onto).
 def warm(ctx: Context) -> None:
     compile_kernels()  # the surface checks' self-intersection test
 
 
+# Version 2: a dense input's first remeshing iteration runs unchecked, then its vertices go back onto the
+# input (geometry/remesh.py _coarsen_onto).
 STAGE = Stage(name=NAME, version=2, plan=plan, run=run, warm=warm)
