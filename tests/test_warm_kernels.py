@@ -1,5 +1,6 @@
-"""The build's warm-up (Stage.warm) compiles what the items run: after it, a heart-sized surface's radar and surface
-checks compile nothing more in a process of their own (numba's on-disk cache, in an empty folder here)."""
+"""The build's warm-up (the registered stages' Stage.warm hooks) compiles what the items run: after it, a
+heart-sized surface's radar and surface checks compile nothing more in a process of their own (numba's on-disk
+cache, in an empty folder here)."""
 
 import os
 import subprocess
@@ -12,12 +13,11 @@ pytestmark = pytest.mark.slow
 
 WARM = """
 import sys
-from meshsar_builder.geometry.intersections import compile_kernels as surfaces
+from pathlib import Path
 from meshsar_builder.pipeline.recipe import load
-from meshsar_builder.radar.render import compile_kernels as radar
+from meshsar_builder.pipeline.runner import Context, _warm, available_stages
 recipe = load(sys.argv[1])
-surfaces()
-radar(recipe.radar, recipe.images)
+_warm(Context(Path("."), recipe), [stage.warm for stage in available_stages().values() if stage.warm is not None])
 """
 
 ITEMS = """

@@ -65,10 +65,11 @@ def specular_loss_echo(verts: np.ndarray, faces: np.ndarray, radar: RadarParams)
     intersector = embree_intersector(verts, faces)
     keep_loss = np.ix_(*grid_indices(radar, radar.loss_decimation))
     view_echo, _ = view_functions(radar.device)
+    tri, freqs = verts[faces], frequencies(radar)
     out = []
     for view in radar.views:
         vis, _ = visibility(verts, faces, probe_points(radar, view), intersector)
-        signal = _view_signal(verts[faces], points, None, vis, radar, view, frequencies(radar), view_echo, None)[0]
+        signal = _view_signal(tri, points, None, vis, radar, view, freqs, view_echo, None)[0]
         out.append(signal[keep_loss].astype(np.complex64))
     return np.stack(out)
 
