@@ -191,6 +191,17 @@ def test_resume_matches_an_uninterrupted_run(tiny_data, tmp_path):
     assert info["checkpoint"] == T.BEST
 
 
+@pytest.mark.parametrize("mode", ["focused", "depth"])
+def test_focused_modes_train_against_the_loss_grid_target(tiny_data, tmp_path, mode):
+    text = TINY_CONFIG.replace("warmup_epochs = 1", f'warmup_epochs = 0\nmode = "{mode}"\nsmooth_iterations = 5\n'
+                               'focused_lateral_mm = 10.0\nfocused_range_mm = 20.0')
+    run = T.train(T.parse_config(text.replace("epochs = 2", "epochs = 1")), tiny_data, out=tmp_path, progress=False)
+    row = run.log[0]
+    assert row["radar"] > 0 and np.isfinite(row["radar_l1"]) and row["radar_l1"] > 0
+    if mode == "focused":  # 1 - cosine; depth: millimetres
+        assert row["radar_l1"] <= 2
+
+
 def test_validation_is_a_seeded_part_of_the_train_split(tiny_data):
     index = T.read_index(tiny_data)
     train = T.split_ids(tiny_data, index, "train", 0)

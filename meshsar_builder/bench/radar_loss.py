@@ -18,7 +18,8 @@ Targets (each `met` holds for every sample; issue 28):
     direction to the truth >= 0.3 at 2 and 4 mm of shift (each axis, each way), at
     +-4 % of scale and +-3 mm of bulge.
 
-The raw L1 (the paper's) is measured with the trainer's code on a fixed subset of
+`focused` and `depth` are the trainer's losses of those modes (the same volumes, compared by cosine or
+by depth maps). The raw L1 (the paper's) is measured with the trainer's code on a fixed subset of
 RAW_ANTENNAS antennas per view (all its frequencies) to bound its cost: a dense echo per
 evaluation is seconds a view on a CPU. `exact` (ExactEvaluator, entry exact_specular) is a
 reference that no trainer runs: the production echo of each candidate, about 0.8 s an evaluation
@@ -49,7 +50,7 @@ COSINE_MIN = 0.3
 DIP_FRACTION = 0.01
 BULGE_RADIUS_MM = 15.0
 RAW_ANTENNAS = 16
-LOSSES = ("focused", "raw", "exact")
+LOSSES = ("focused", "depth", "raw", "exact")
 
 
 def remesh_onto_template(verts: np.ndarray, faces: np.ndarray, template: np.ndarray) -> np.ndarray:
@@ -138,13 +139,13 @@ def landscape_flags(family: str, ts: np.ndarray, values: np.ndarray) -> dict:
 
 
 class FocusedEvaluator:
-    """The trainer's focused loss (its FocusedSetup, smoothing and target) for one sample."""
+    """The trainer's loss of a FOCUSED_MODES mode ("focused", "depth": its FocusedSetup, smoothing and target)
+    for one sample."""
 
-    name = "focused"
-
-    def __init__(self, geometry, config, sample: dict, faces: torch.Tensor, target: str, edges):
+    def __init__(self, geometry, config, sample: dict, faces: torch.Tensor, target: str, edges, mode: str):
         from meshsar_builder.trainer.train import focused_params
 
+        self.name = mode
         rc = config.radar_loss
         self.params, self.geometry, self.edges, self.iterations = focused_params(rc), geometry, edges, \
             rc.smooth_iterations
@@ -160,7 +161,7 @@ class FocusedEvaluator:
         from meshsar_builder.trainer import losses as L
 
         smoothed = L.smooth_gradient(verts, self.edges, self.iterations)
-        return L.focused_radar_loss(smoothed, self.faces, self.targets, self.setup)
+        return L.focused_radar_loss(smoothed, self.faces, self.targets, self.setup, mode=self.name)
 
 
 class RawEvaluator:
@@ -324,8 +325,8 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 5, config_path: st
         result["samples"].append(sample["sample_id"])
         for loss, target in pairs:
             start = time.perf_counter()
-            if loss == "focused":
-                evaluator = FocusedEvaluator(geometry, config, sample, faces_t, target, edges)
+            if loss in ("focused", "depth"):
+                evaluator = FocusedEvaluator(geometry, config, sample, faces_t, target, edges, loss)
             elif loss == "exact":
                 evaluator = ExactEvaluator(geometry.focused_setup(focused_params(config.radar_loss)),
                                            radar_from_index(dataset.index), geometry.view_index, verts, faces, tfaces)

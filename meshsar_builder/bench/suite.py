@@ -17,7 +17,7 @@ Parts:
   with `--device cuda` on a GPU in fp32 and mixed precision (bench_trainer);
 - radar-loss: the radar losses' landscapes (minimum, monotone rise, gradient cosine)
   on 5 samples of a build, $MESHSAR_BENCH_DATA or build/demo (bench/radar_loss.py;
-  $MESHSAR_BENCH_SAMPLES, $MESHSAR_BENCH_LOSSES = focused,raw bound a run; `exact` adds
+  $MESHSAR_BENCH_SAMPLES, $MESHSAR_BENCH_LOSSES = focused,depth,raw bound a run; `exact` adds
   the production echo as a reference model, about 4 minutes a sample);
 - speckle: the diffuse component's statistics and cost (bench/speckle.py);
 - inference: seconds per sample for `meshsar fit` and `--refine` on 3 shape-model test
@@ -358,7 +358,7 @@ def bench_trainer(out: Path, device: str = "cpu") -> dict:
 def bench_radar_loss(out: Path) -> dict:
     from meshsar_builder.bench.radar_loss import run
 
-    losses = tuple(os.environ.get("MESHSAR_BENCH_LOSSES", "focused,raw").split(","))
+    losses = tuple(os.environ.get("MESHSAR_BENCH_LOSSES", "focused,depth,raw").split(","))
     return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA),
                samples=int(os.environ.get("MESHSAR_BENCH_SAMPLES", "5")), losses=losses)
 

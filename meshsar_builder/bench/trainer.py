@@ -83,13 +83,13 @@ def radar_ms_per_sample(config: TrainConfig, geometry: DatasetGeometry, batch: d
     for repeat in range(REPEATS + 1):
         v = verts.clone().requires_grad_(True)
         start = time.perf_counter()
-        if rc.mode == "focused":
+        if rc.mode in L.FOCUSED_MODES:
             from meshsar_builder.trainer.train import focused_params
 
             params = focused_params(rc)
             targets = geometry.focused_targets({k: batch[k][:size] for k in ("radar_targets",)}, params, rc.target)
             loss = L.focused_radar_loss(L.smooth_gradient(v, edges, rc.smooth_iterations), faces_t, targets,
-                                        geometry.focused_setup(params))
+                                        geometry.focused_setup(params), mode=rc.mode)
         else:
             echo = batch["echo"][:size, geometry.view_index]
             echo = echo.reshape(*echo.shape[:2], -1, echo.shape[-1])

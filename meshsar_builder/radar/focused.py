@@ -26,6 +26,7 @@ O(facets x antennas x frequencies) for a dense echo; the target is focused once 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -33,7 +34,7 @@ import numpy as np
 import torch
 
 from meshsar_builder.radar.imaging import focus
-from meshsar_builder.radar.params import RadarParams, aperture_axes, frequencies, grid_indices, probe_points, view_frame
+from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, RadarParams, aperture_axes, frequencies, grid_indices, probe_points, view_frame
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,7 @@ class FocusedParams:
     # facet weight: "specular" (the Hann window at the facet's specular aperture point) or
     # "diffuse" (lobe / R^2 toward the aperture centre only: rough surfaces glow where seen)
     reflection: str = "specular"
+    depth_eps_mm: float = 1.0  # compare "depth": the Charbonnier's scale (quadratic below it, linear above)
 
     def __post_init__(self):
         for name in ("lateral_mm", "range_mm", "half_extent_mm"):
@@ -56,6 +58,8 @@ class FocusedParams:
             raise ValueError(f"reflection: must be specular or diffuse, got {self.reflection!r}")
         if self.blur_mm < 0:
             raise ValueError(f"blur_mm: must be >= 0, got {self.blur_mm}")
+        if not self.depth_eps_mm > 0:
+            raise ValueError(f"depth_eps_mm: must be > 0, got {self.depth_eps_mm}")
 
 
 def radar_from_index(index: dict) -> RadarParams:
@@ -118,6 +122,9 @@ class FocusedSetup:
         self.offset, self.padded = _padding(self.shape, params)
         self.spacing = (params.range_mm, params.lateral_mm, params.lateral_mm)
         self.frames = np.stack([view_frame(v) for v in self.views])  # (V, 3, 3) rows u, v, w
+        # c / 2B: the depth loss's window (the full sweep's band B, which the loss grid's frequencies span)
+        all_freqs = frequencies(radar)
+        self.range_resolution_mm = 1e3 * SPEED_OF_LIGHT_M_PER_S / (2 * len(all_freqs) * (all_freqs[1] - all_freqs[0]))
         self.probes = [probe_points(radar, v) for v in self.views]
         # The aperture's half extent along u and v (antenna centres): the Hann window of focus.
         self.half_aperture = ((radar.aperture[0] - 1) * radar.step_mm / 2, (radar.aperture[1] - 1) * radar.step_mm / 2)
@@ -340,19 +347,66 @@ def fixed_convolution(volumes, transfers, shape) -> torch.Tensor:
 
 
 def focused_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup: FocusedSetup,
-                 masks: list[torch.Tensor] | None = None) -> torch.Tensor:
-    """Mean over samples and views of 1 - cos(predicted, target) of the blurred power volumes.
+                 masks: list[torch.Tensor] | None = None, compare: str = "cosine") -> torch.Tensor:
+    """Mean over samples and views of a distance between predicted and target blurred power volumes.
 
     verts (B, n, 3) mm; faces (m, 3) long; targets (B, V, S, H, W) from setup.target; masks:
     occlusion_masks of verts for setup.probes (V x (B, m)), or None to trace them here.
+    compare: "cosine" (1 - cos of the volumes) or "depth" (depth_distance: their depth maps).
     """
     from meshsar_builder.radar.differentiable import occlusion_masks
 
     faces = torch.as_tensor(faces, dtype=torch.long, device=verts.device)
     if masks is None:
         masks = occlusion_masks(verts, faces, setup.probes[: targets.shape[1]])  # V x (B, m), one scene a mesh
-    terms = [cosine_distance(setup.predicted(verts, faces, v, masks[v]), targets[:, v]) for v in range(targets.shape[1])]
+    distance = {"cosine": cosine_distance, "depth": functools.partial(depth_distance, setup=setup)}[compare]
+    terms = [distance(setup.predicted(verts, faces, v, masks[v]), targets[:, v]) for v in range(targets.shape[1])]
     return torch.stack(terms).mean()
+
+
+def depth_window(target: torch.Tensor, slices: float) -> torch.Tensor:
+    """(B, S, H, W) a Hann taper along w about each column's peak: 1 at the peak, 0 from `slices` away.
+
+    target (B, S, H, W) power volumes. The range focus spreads a surface over the range
+    resolution; beyond it a column holds other surfaces' sidelobes, which bias its centroid.
+    """
+    index = torch.arange(target.shape[1], device=target.device)[None, :, None, None]  # (1, S, 1, 1)
+    offset = (index - target.argmax(1, keepdim=True)).abs().to(target.dtype)  # (B, S, H, W)
+    return torch.cos((math.pi / 2) * (offset / slices).clamp(max=1)) ** 2
+
+
+def column_depth(volume: torch.Tensor, window: torch.Tensor, w_mm: torch.Tensor):
+    """Depth centroid (B, H, W) mm along w of each column's windowed power, and that power (B, H, W).
+
+    volume, window (B, S, H, W); w_mm (S,) the slices' w. Negative power (the debiased target's
+    noise) counts as none. Columns without power get depth 0 (their weight is 0).
+    """
+    power = volume.clamp_min(0) * window  # (B, S, H, W)
+    total = power.sum(1)  # (B, H, W)
+    depth = (power * w_mm[:, None, None]).sum(1) / total.clamp_min(torch.finfo(total.dtype).tiny)  # (B, H, W)
+    return depth, total
+
+
+def depth_distance(predicted: torch.Tensor, target: torch.Tensor, setup: FocusedSetup) -> torch.Tensor:
+    """(B,) the target-power-weighted Charbonnier distance (mm) between two volumes' depth maps (one view's).
+
+    predicted, target (B, S, H, W). Each column's depth is the centroid of its power within one
+    range resolution of the target's peak (depth_window; the same window on both sides), so a
+    surface's depth is compared where the radar sees it, and the prediction's amplitudes, which
+    the image-domain model gets wrong by tens of per cent, cancel in each column's ratio.
+    Weights: the target's column powers, summing to 1 per sample; columns where the prediction
+    has no power are left out. rho(d) = sqrt(d^2 + eps^2) - eps, eps = setup.params.depth_eps_mm.
+    """
+    target = target.to(predicted)
+    window = depth_window(target, setup.range_resolution_mm / setup.params.range_mm)  # (B, S, H, W)
+    w_mm = torch.as_tensor(setup.w, dtype=predicted.dtype, device=predicted.device)
+    z_target, weight = column_depth(target, window, w_mm)  # (B, H, W) each
+    z_predicted, power = column_depth(predicted, window, w_mm)  # (B, H, W) each
+    seen = power.detach() > 1e-6 * power.detach().flatten(1).amax(1)[:, None, None]  # (B, H, W)
+    weight = torch.where(seen, weight, torch.zeros_like(weight))
+    eps = setup.params.depth_eps_mm
+    rho = torch.sqrt((z_predicted - z_target) ** 2 + eps * eps) - eps  # (B, H, W)
+    return (weight * rho).flatten(1).sum(1) / weight.flatten(1).sum(1).clamp_min(1e-30)  # (B,)
 
 
 def cosine_distance(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -60,6 +60,7 @@ class RadarLossConfig:
     mode "focused" (default.toml's): 1 - cosine of blurred, debiased power volumes, the target
     focused from the loss-grid echo (echo_clean, or the recorded noisy echo) and the
     prediction from an image-domain splat of the predicted mesh (radar/focused.py).
+    "depth": the same volumes compared by their depth maps (focused.depth_distance, in mm).
     "raw" (the paper's) and "profile": the relative L1 on the stored decimated echo.
     """
 
@@ -77,13 +78,13 @@ class RadarLossConfig:
     # varies smoothly with its minimum within 2 mm and a basin of about -8..+4 mm.
     mode: str = "profile"
     beta: float = 10.0  # steepness of the soft visibility (raw, profile)
-    # focused: the target's echo, "clean" (echo_clean) or "recorded" (echo_clean plus the
+    # focused and depth: the target's echo, "clean" (echo_clean) or "recorded" (echo_clean plus the
     # build's noise regenerated from noise_seed; its expected image power is subtracted)
     target: str = "clean"
     focused_lateral_mm: float = 2.5  # voxel size across the view
     focused_range_mm: float = 5.0  # voxel size along the view
     focused_blur_mm: float = 3.0  # Gaussian blur of both volumes
-    # focused mode: heat-kernel steps applied to its per-vertex gradient (0: none): the raw
+    # focused and depth modes: heat-kernel steps applied to its per-vertex gradient (0: none): the raw
     # gradient is high-frequency (cosine to the true direction <= 0.03, issue 28)
     smooth_iterations: int = 0
     antennas: int = 0  # antennas per view drawn each step (0: every antenna of the echo grid)

@@ -19,8 +19,10 @@ from scipy.spatial import cKDTree
 from meshsar_builder.radar.differentiable import aperture_probes, echo_torch
 from meshsar_builder.radar.params import RadarParams
 
-RADAR_MODES = ("focused", "raw", "profile")
-# focused: blurred, debiased power volumes (radar/focused.py); raw and profile: L1 on the echo.
+RADAR_MODES = ("focused", "depth", "raw", "profile")
+# focused and depth: blurred, debiased power volumes (radar/focused.py), compared by cosine or by their
+# depth maps (the volume distance focused_loss takes); raw and profile: L1 on the echo.
+FOCUSED_MODES = {"focused": "cosine", "depth": "depth"}
 ECHO_MODES = ("raw", "profile")
 
 
@@ -270,17 +272,18 @@ def smooth_gradient(verts: torch.Tensor, edges: torch.Tensor, iterations: int) -
 
 
 def focused_radar_loss(verts: torch.Tensor, faces: torch.Tensor, targets: torch.Tensor, setup,
-                       masks: list[torch.Tensor] | None = None) -> torch.Tensor:
-    """The focused radar loss (radar/focused.py focused_loss): 1 - cosine of blurred power volumes.
+                       masks: list[torch.Tensor] | None = None, mode: str = "focused") -> torch.Tensor:
+    """A radar loss on blurred power volumes (radar/focused.py focused_loss), of a FOCUSED_MODES mode.
 
     verts (B, n, 3) mm; targets (B, V, S, H, W) float, setup.target of each sample's
     loss-grid echo (echo_clean, or the recorded echo with its noise_sigma); setup a
     FocusedSetup for the views in use; masks: the views' occlusion masks V x (B, m) when
-    already traced (None: traced here). 0 on a perfect match, up to 1 (2 for anti-correlated).
+    already traced (None: traced here). focused: 1 - cosine, 0 on a perfect match, up to 1
+    (2 for anti-correlated); depth: the depth maps' weighted Charbonnier distance in mm.
     """
     from meshsar_builder.radar.focused import focused_loss
 
-    return focused_loss(verts, faces, targets, setup, masks)
+    return focused_loss(verts, faces, targets, setup, masks, FOCUSED_MODES[mode])
 
 
 def balanced(radar: torch.Tensor, geometric: torch.Tensor, verts: torch.Tensor) -> torch.Tensor:

@@ -205,7 +205,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
     unit = geometry.fov_mm / 2
     device = meshes[0][1].device
     rc, params, masks = config.radar_loss, focused_params(config.radar_loss), None
-    if radar_weight > 0 and rc.mode == "focused":  # Embree masks traced in a thread beside the geometric terms
+    if radar_weight > 0 and rc.mode in L.FOCUSED_MODES:  # Embree masks traced in a thread beside the geometric terms
         from meshsar_builder.radar.differentiable import occlusion_masks
 
         setup = geometry.focused_setup(params)
@@ -228,7 +228,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
         topo = model.topology(rc.stage)
         verts = meshes[rc.stage][1]
         smoothed = L.smooth_gradient(verts.float(), topo["edges"], rc.smooth_iterations)
-        relative = L.focused_radar_loss(smoothed, topo["faces"], targets, setup, masks.result())
+        relative = L.focused_radar_loss(smoothed, topo["faces"], targets, setup, masks.result(), rc.mode)
         terms["radar_l1"] = relative.detach()
         if rc.balance == "gradient" and torch.is_grad_enabled() and verts.requires_grad:
             terms["radar"] = radar_weight * L.balanced(relative, sum(terms[name] for name in LOSS_TERMS), verts)
@@ -498,7 +498,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     index = read_index(data)
     geometry = DatasetGeometry.from_index(index, config.data.views)
     train_ids, val_ids = validation_split(data, index, seed_, config.data.val_fraction)
-    recorded = config.radar_loss.mode == "focused" and config.radar_loss.target == "recorded"
+    recorded = config.radar_loss.mode in L.FOCUSED_MODES and config.radar_loss.target == "recorded"
     every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels), noisy_loss_echo=recorded)
     train_set, val_set = Subset(every, train_ids), Subset(every, val_ids)
     state = load_checkpoint(run / CHECKPOINT, device) if (run / CHECKPOINT).exists() else None
