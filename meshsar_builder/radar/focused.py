@@ -17,8 +17,12 @@ point-spread function of the same scan (the focused noise-free echo of one point
 heart centre), squared (a smooth surface adds coherently within a resolution cell: its
 magnitude, not its power, is linear in area) and blurred by the same Gaussian.
 
-Loss: 1 - cosine similarity of the two volumes per sample and view (scale-free: the
-prediction carries no absolute echo scale), mean over samples and views.
+Loss (focused_loss's `compare`): "cosine", 1 - cosine similarity of the two volumes per sample
+and view (scale-free: the prediction carries no absolute echo scale); or "depth"
+(depth_distance), the distance in mm between the two volumes' per-column depth centroids within
+one range resolution of the target's peak, weighted by the target's column power: a ratio of
+each column's own powers, which the model's amplitude errors leave nearly unchanged. Mean over
+samples and views.
 
 Cost: O(facets) for the splat plus 4 FFTs of the padded voxel grid per view (5 with the diffuse part), against
 O(facets x antennas x frequencies) for a dense echo; the target is focused once per sample.
@@ -34,7 +38,15 @@ import numpy as np
 import torch
 
 from meshsar_builder.radar.imaging import focus
-from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, RadarParams, aperture_axes, frequencies, grid_indices, probe_points, view_frame
+from meshsar_builder.radar.params import (
+    SPEED_OF_LIGHT_M_PER_S,
+    RadarParams,
+    aperture_axes,
+    frequencies,
+    grid_indices,
+    probe_points,
+    view_frame,
+)
 
 
 @dataclass(frozen=True)
@@ -123,8 +135,8 @@ class FocusedSetup:
         self.spacing = (params.range_mm, params.lateral_mm, params.lateral_mm)
         self.frames = np.stack([view_frame(v) for v in self.views])  # (V, 3, 3) rows u, v, w
         # c / 2B: the depth loss's window (the full sweep's band B, which the loss grid's frequencies span)
-        all_freqs = frequencies(radar)
-        self.range_resolution_mm = 1e3 * SPEED_OF_LIGHT_M_PER_S / (2 * len(all_freqs) * (all_freqs[1] - all_freqs[0]))
+        sweep = frequencies(radar)
+        self.range_resolution_mm = 1e3 * SPEED_OF_LIGHT_M_PER_S / (2 * len(sweep) * (sweep[1] - sweep[0]))
         self.probes = [probe_points(radar, v) for v in self.views]
         # The aperture's half extent along u and v (antenna centres): the Hann window of focus.
         self.half_aperture = ((radar.aperture[0] - 1) * radar.step_mm / 2, (radar.aperture[1] - 1) * radar.step_mm / 2)
