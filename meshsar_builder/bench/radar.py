@@ -359,8 +359,11 @@ def scaling(verts, faces, images, radar=None, vertex_counts=SCALING_VERTICES, si
                             **{k: row[k] for k in ("seconds_echo", "seconds_diffuse", "seconds_imaging")}})
 
     def exponent(rows, x):
+        # None where a time is not positive: the diffuse part's is the difference of two timed calls
+        # (view_seconds), which on a small scene can come out at zero and has no logarithm then
+        keys = ("seconds_echo", "seconds_diffuse", "seconds_imaging")
         return {k: float(np.polyfit(np.log([r[x] for r in rows]), np.log([r[k] for r in rows]), 1)[0])
-                for k in ("seconds_echo", "seconds_diffuse", "seconds_imaging")}
+                if min(r[k] for r in rows) > 0 else None for k in keys}
 
     return {"by_mesh": by_mesh, "by_aperture": by_aperture,
             "exponent_faces": exponent(by_mesh, "visible_facets"), "exponent_antennas": exponent(by_aperture,
