@@ -40,6 +40,7 @@ import trimesh
 
 from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import write_json
+from meshsar_builder.trainer.losses import FOCUSED_MODES
 
 TOLERANCE = {"shift": 0.5, "scale": 1.0, "bulge": 0.5, "twist": 1.0}  # mm, %, mm, deg
 FINE = {"shift": (2.0, 0.25), "scale": (2.0, 0.25), "bulge": (2.0, 0.25), "twist": (3.0, 0.5)}
@@ -50,7 +51,7 @@ COSINE_MIN = 0.3
 DIP_FRACTION = 0.01
 BULGE_RADIUS_MM = 15.0
 RAW_ANTENNAS = 16
-LOSSES = ("focused", "depth", "raw", "exact")
+LOSSES = (*FOCUSED_MODES, "raw", "exact")
 
 
 def remesh_onto_template(verts: np.ndarray, faces: np.ndarray, template: np.ndarray) -> np.ndarray:
@@ -325,7 +326,7 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 5, config_path: st
         result["samples"].append(sample["sample_id"])
         for loss, target in pairs:
             start = time.perf_counter()
-            if loss in ("focused", "depth"):
+            if loss in FOCUSED_MODES:
                 evaluator = FocusedEvaluator(geometry, config, sample, faces_t, target, edges, loss)
             elif loss == "exact":
                 evaluator = ExactEvaluator(geometry.focused_setup(focused_params(config.radar_loss)),
