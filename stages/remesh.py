@@ -2,17 +2,20 @@
 
 Outputs: `remesh/<item>.ply` with structure labels carried over from the nearest
 marching-cubes vertex, and a sidecar with the surface checks (watertight, Euler
-characteristic, self-intersections, area, volume).
+characteristic, self-intersections, area, volume) and `warnings` (a surface remeshed at
+finer edges than the recipe's, and why).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
+from meshsar_builder.dataset.label_maps import warning_messages
 from meshsar_builder.geometry.intersections import compile_kernels
 from meshsar_builder.geometry.meshfile import read_ply, write_ply
 from meshsar_builder.geometry.meshing import transfer_labels
-from meshsar_builder.geometry.remesh import mesh_checks, remesh
+from meshsar_builder.geometry.remesh import RemeshWarning, mesh_checks, remesh
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 
 NAME = "remesh"
@@ -30,12 +33,16 @@ def plan(ctx: Context, results: Results) -> list[Item]:
 
 def run(ctx: Context, item: Item) -> dict:
     verts, faces, labels = read_ply(item.inputs[0])
-    new_verts, new_faces = remesh(verts, faces, ctx.recipe.remesh)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RemeshWarning)
+        new_verts, new_faces = remesh(verts, faces, ctx.recipe.remesh)
     new_labels = transfer_labels(verts, labels, new_verts)
     write_ply(ctx.stage_dir(NAME) / f"{item.id}.ply", new_verts, new_faces, new_labels)
     checks = mesh_checks(new_verts, new_faces)
     lo, hi = new_verts.min(axis=0), new_verts.max(axis=0)
-    return {**checks, "volume_ml": checks["volume_mm3"] / 1000, "center_mm": ((lo + hi) / 2).tolist(), **item.data}
+    # a finer edge than the recipe's where the surface has parts too thin for it (remesh), said here
+    return {**checks, "volume_ml": checks["volume_mm3"] / 1000, "center_mm": ((lo + hi) / 2).tolist(),
+            "warnings": warning_messages(caught, RemeshWarning), **item.data}
 
 
 def warm(ctx: Context) -> None:

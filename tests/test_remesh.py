@@ -3,8 +3,10 @@ import pytest
 import trimesh
 from scipy.special import ellipeinc, ellipkinc
 
+import meshsar_builder.geometry.remesh as remesh_module
 from meshsar_builder.geometry.remesh import (
     RemeshParams,
+    RemeshWarning,
     mesh_checks,
     remesh,
     require_valid,
@@ -159,3 +161,33 @@ def test_simplify_leaves_small_surfaces_unchanged(remeshed_ellipsoid):
 def test_params_reject_bad_values_naming_the_field(field, value):
     with pytest.raises(ValueError, match=f"^{field}: .*got {value}"):
         RemeshParams(**{field: value})
+
+
+def test_a_surface_that_fails_at_the_edge_asked_for_is_remeshed_finer_and_says_so(ellipsoid, monkeypatch):
+    """A real whole-heart CT failed at 2.5 mm (a branch thinner than the edge) and passed at 2.0: here the remesher
+    at the asked edge is made to fail, and the result must come from the first finer edge, with a warning."""
+    at = remesh_module._remesh_at
+    tried = []
+
+    def thin_at_coarse_edges(verts, faces, params):
+        tried.append(params.edge_mm)
+        if params.edge_mm > 2.2:
+            raise MeshError("remeshed surface: 2 components instead of 1")
+        return at(verts, faces, params)
+
+    monkeypatch.setattr(remesh_module, "_remesh_at", thin_at_coarse_edges)
+    with pytest.warns(RemeshWarning, match=r"remeshed at 2 mm edges, not 2.5 mm .*2.5 mm: remeshed surface: 2 comp"):
+        verts, faces = remesh(*ellipsoid, RemeshParams(edge_mm=2.5))
+    assert tried == [2.5, 2.0]
+    require_valid(verts, faces, "finer surface")
+    edges = trimesh.Trimesh(verts, faces, process=False).edges_unique_length
+    assert abs(np.median(edges) - 2.0) < 0.25  # remeshed at 2.0 mm, not 2.5
+
+
+def test_a_surface_that_fails_at_every_edge_names_each(ellipsoid, monkeypatch):
+    def never(verts, faces, params):
+        raise MeshError(f"crossed at {params.edge_mm:g}")
+
+    monkeypatch.setattr(remesh_module, "_remesh_at", never)
+    with pytest.raises(MeshError, match=r"no edge length .*3 mm: crossed at 3; 2.4 mm: crossed at 2.4; 1.92 mm: .*1.5 mm"):
+        remesh(*ellipsoid, RemeshParams(edge_mm=3.0))

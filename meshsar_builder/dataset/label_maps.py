@@ -31,9 +31,9 @@ class InputWarning(UserWarning):
     """A usable input with something the user should know (unmapped labels, no spatial header)."""
 
 
-def warning_messages(caught: list[warnings.WarningMessage]) -> list[str]:
-    """The InputWarning texts among recorded warnings, for a stage's sidecar (the user reads them there)."""
-    return [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
+def warning_messages(caught: list[warnings.WarningMessage], category: type[Warning] = InputWarning) -> list[str]:
+    """The texts of `category` among recorded warnings, for a stage's sidecar (the user reads them there)."""
+    return [str(w.message) for w in caught if issubclass(w.category, category)]
 
 
 @dataclass(frozen=True)
