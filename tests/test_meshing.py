@@ -12,6 +12,7 @@ from skimage.measure import euler_number
 
 from meshsar_builder.geometry.meshing import (
     MeshingParams,
+    is_closed_genus0,
     labels_to_surface,
     resample_cubic,
     signed_distance,
@@ -115,6 +116,23 @@ def test_empty_mask_is_named_input_error():
     labels[2:5, 2:5, 2:5] = STRUCTURES["la"]
     with pytest.raises(InputError, match=r"case7: none of the structures \['lv', 'rv'\] present \(found: \['la'\]\)"):
         labels_to_surface(labels, np.eye(4), ["lv", "rv"], MeshingParams(), name="case7")
+
+
+@pytest.mark.parametrize("thin_axis", [0, 1, 2])
+def test_a_single_slice_map_is_named_input_error(thin_axis):
+    """A long-axis cine view (M&Ms-2's 4-chamber maps are 256 x 256 x 1) has no solid to mesh: the error names the
+    file and the axis, not a mask that vanished in the smoothing. Two slices are a solid and mesh."""
+    shape = [40, 40, 40]
+    shape[thin_axis] = 1
+    labels = np.zeros(shape, np.uint8)
+    inner = [slice(5, 35)] * 3
+    inner[thin_axis] = slice(0, 1)
+    labels[tuple(inner)] = STRUCTURES["lv"]
+    with pytest.raises(InputError, match=rf"la_ed.nii.gz: the structures \['lv'\] are one voxel thick along voxel axis {thin_axis}"):
+        labels_to_surface(labels, np.diag([1.7, 1.7, 1.7, 1.0]), ["lv"], MeshingParams(), name="la_ed.nii.gz")
+    two = np.concatenate([labels, labels], axis=thin_axis)
+    surface = labels_to_surface(two, np.diag([8.0, 8.0, 8.0, 1.0]), ["lv"], MeshingParams(), name="two")
+    assert is_closed_genus0(surface.verts, surface.faces)[0]
 
 
 def test_vertex_labels_follow_nearest_structure():

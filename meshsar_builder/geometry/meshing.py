@@ -131,10 +131,10 @@ def resample_cubic(values: np.ndarray, axes: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams) -> IsoGrid:
+def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams, name: str = "label map") -> IsoGrid:
     """Signed distance of a mask resampled to `spacing_mm` and smoothed: the field meshed at 0.
 
-    mask : (X, Y, Z) bool, affine : (4, 4) voxel -> RAS mm.
+    mask : (X, Y, Z) bool, affine : (4, 4) voxel -> RAS mm; name : the input, for errors.
     """
     voxel_mm = np.linalg.norm(affine[:3, :3], axis=0)
     step = params.spacing_mm / voxel_mm  # new-grid step in voxel units, per axis
@@ -161,7 +161,7 @@ def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams) -> Iso
     if params.sigma_mm > 0:
         iso = ndimage.gaussian_filter(iso, params.sigma_mm / params.spacing_mm, mode="nearest")
     if not (iso.min() < 0 < iso.max()):
-        raise MeshError("mask vanished after resampling and smoothing (structure thinner than the smoothing?)")
+        raise MeshError(f"{name}: mask vanished after resampling and smoothing (structure thinner than the smoothing?)")
     return IsoGrid(iso, lo.astype(float), step, np.asarray(affine, float))
 
 
@@ -223,8 +223,15 @@ def labels_to_surface(
     if not chosen.any():
         present = sorted(k for k, v in STRUCTURES.items() if (labels == v).any())
         raise InputError(f"{name}: none of the structures {structures} present (found: {present})")
+    # One voxel thick along an axis (a long-axis cine view is a single slice): no solid to mesh, which the smoothing
+    # would only report as a vanished mask.
+    spans = [int(np.ptp(index)) + 1 for index in np.nonzero(chosen)]
+    if min(spans) < 2:
+        axis = int(np.argmin(spans))
+        raise InputError(f"{name}: the structures {structures} are one voxel thick along voxel axis {axis} (label map "
+                         f"shape {labels.shape}): a single slice has no 3-D surface; mesh a stack of slices")
     union = ndimage.binary_fill_holes(chosen > 0)
-    plain = contour(iso_grid(union, affine, params))
+    plain = contour(iso_grid(union, affine, params, name))
     if is_closed_genus0(*plain)[0]:
         # Already genus 0: no repair, so a surface that needs none is never changed by one.
         return _surface(*plain, nearest_labels(plain[0], chosen, chosen > 0, affine), {})
@@ -236,7 +243,7 @@ def labels_to_surface(
         world = np.asarray(contact.pop("position_index")) @ affine[:3, :3].T + affine[:3, 3]
         contact["position_mm"] = [round(float(c), 2) for c in world]
     record.update(steps)
-    grid = iso_grid(ndimage.binary_fill_holes(repaired > 0), affine, params)
+    grid = iso_grid(ndimage.binary_fill_holes(repaired > 0), affine, params, name)
     handles: list[dict] = []
     # Marching cubes joins voxels across a saddle as one or the other adjacency would: try the
     # solid's 6-adjacency first (thin diagonal contacts count as apart), then 26.
