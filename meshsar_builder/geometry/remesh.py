@@ -233,10 +233,11 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
     verts : (n, 3) float mm, faces : (m, 3) int  ->  (n', 3) float, (m', 3) int64.
     The result has outward normals. A surface that is not closed genus 0 without
     self-intersections after params.repair_passes repairs, from an input that is, is remeshed
-    again from the input at the finer edges of FINER_EDGES, and the first that passes is returned with a RemeshWarning
-    saying which edge and why; MeshError names every edge tried where none passes. An input
-    denser than the target everywhere (median edge under half of edge_mm, none over it) is
-    coarsened by _coarsen_onto; any other is remeshed with every iteration checked against it.
+    again from the input at the finer edges of FINER_EDGES; the first that passes is returned
+    with a RemeshWarning saying which edge and why, and MeshError names every edge tried where
+    none passes. An input denser than the target everywhere (median edge under half of edge_mm,
+    none over it) is coarsened by _coarsen_onto; any other is remeshed with every iteration
+    checked against it.
     """
     try:
         return _remesh_at(verts, faces, params)
