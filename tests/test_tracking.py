@@ -1,13 +1,4 @@
-"""Frames in correspondence (issue 27.3): tracking judged on known motion.
-
-An ED mesh is moved by a known smooth time-varying map over one cycle: radial contraction
-toward the long axis, descent of the base toward a still apex, and twist about the long axis
-(apex and base turning opposite ways), each peaking at end-systole. Every frame is the moved
-mesh re-tessellated (as a real frame is meshed on its own) with labels carried over. The
-tracker fits the ED mesh to every frame; its error is each fitted vertex's distance from where
-the map sends it, with the twist (circumferential) component reported apart: on a surface of
-revolution only the labels' junctions can show it.
-"""
+"""Frames in correspondence (issue 27.3): tracking judged on known motion (geometry/known_motion.py)."""
 
 from __future__ import annotations
 
@@ -15,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from meshsar_builder.geometry.known_motion import cine, errors
 from meshsar_builder.geometry.meshing import labels_to_surface, transfer_labels
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import RemeshParams, remesh
@@ -24,55 +16,6 @@ from meshsar_builder.geometry.tracking import track_frames, visit_chains, visit_
 pytestmark = pytest.mark.slow
 EDGE = RemeshParams(edge_mm=2.5)  # the demo recipe's
 PARAMS = RegistrationParams(distance_samples=5000)
-
-
-def long_axis(verts: np.ndarray, labels: np.ndarray, faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """(centre, unit axis pointing to the apex, apex and base positions along it) of a ventricle-
-    like shape. With faces, where the LV shows on the surface as a basal disc (short-axis data:
-    its area-weighted normals agree, coherence >= 0.5), the axis is the disc's inward normal:
-    the anatomical long axis (within 1-5 deg of the slice normal on the real M&Ms maps), where
-    the principal axis of a biventricular union runs 46-84 deg off it, toward the RV. Otherwise
-    the principal axis, turned toward the end farther from the basal (non-lv/myo) labels."""
-    centre = verts.mean(axis=0)
-    axis = np.linalg.eigh(np.cov((verts - centre).T))[1][:, 2]
-    basal = ~np.isin(labels, (S["lv"], S["myo"]))
-    if basal.any() and ((verts[basal] - centre) @ axis).mean() > 0:
-        axis = -axis
-    if faces is not None:
-        disc = (labels[faces] == S["lv"]).all(axis=1)
-        corners = verts[faces[disc]]
-        normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])  # 2 x area
-        total = normals.sum(axis=0)
-        if disc.any() and np.linalg.norm(total) >= 0.5 * np.linalg.norm(normals, axis=1).sum():
-            axis = -total / np.linalg.norm(total)
-    along = (verts - centre) @ axis
-    return centre, axis, float(along.max()), float(along.min())
-
-
-def cycle_map(verts: np.ndarray, frame: np.ndarray, t: float) -> np.ndarray:
-    """Where the known motion sends verts (n, 3) at cycle time t in [0, 1); `frame` = long_axis(...)."""
-    centre, axis, apex, base = frame
-    c = np.sin(np.pi * t) ** 2  # 0 at ED, 1 at end-systole
-    p = verts - centre
-    along = p @ axis
-    radial = p - along[:, None] * axis
-    s = np.clip((apex - along) / (apex - base), 0.0, 1.0)  # 0 at the apex, 1 at the base
-    radial = radial * (1 - 0.08 * c)
-    angle = np.radians(10.0) * c * (0.5 - s)
-    radial = np.cos(angle)[:, None] * radial + np.sin(angle)[:, None] * np.cross(axis, radial)
-    return centre + (along + 12.0 * c * s)[:, None] * axis + radial
-
-
-def cine(verts, faces, labels, n_frames):
-    """The known-motion frames of an ED mesh (remeshed per frame) and the truth per frame."""
-    frame = long_axis(verts, labels, faces)
-    frames, truth = [(verts, faces, labels)], [verts]
-    for t in np.arange(1, n_frames) / n_frames:
-        moved = cycle_map(verts, frame, t)
-        fv, ff = remesh(moved, faces, EDGE)
-        frames.append((fv, ff, transfer_labels(moved, labels, fv)))
-        truth.append(moved)
-    return frames, truth, frame
 
 
 def phantom_ed():
@@ -105,21 +48,6 @@ def bent_cone():
     return verts, faces, labels.astype(np.uint8)
 
 
-def errors(fits, truth, frame):
-    """Per tracked frame: mean vertex error, its twist (circumferential) part and the rest (mm)."""
-    centre, axis = frame[:2]
-    rows = []
-    for fit, true in zip(fits[1:], truth[1:]):
-        d = fit - true
-        radial = (true - centre) - ((true - centre) @ axis)[:, None] * axis
-        circ = np.cross(axis, radial)
-        circ /= np.maximum(np.linalg.norm(circ, axis=1, keepdims=True), 1e-9)
-        twist = np.abs(np.sum(d * circ, axis=1))
-        total = np.linalg.norm(d, axis=1)
-        rows.append((total.mean(), twist.mean(), np.sqrt(np.maximum(total**2 - twist**2, 0)).mean()))
-    return np.array(rows)
-
-
 @pytest.mark.parametrize("shape, total_mm", [(phantom_ed, 1.0), (bent_cone, 1.5)])
 def test_known_cycle_is_tracked_within_a_millimetre_but_for_twist(shape, total_mm):
     """Measured (2.5 mm edges, 10 frames, about the LV's long axis): phantom 0.73 mm mean (twist
@@ -127,7 +55,7 @@ def test_known_cycle_is_tracked_within_a_millimetre_but_for_twist(shape, total_m
     at most 2.17. The cone's junctions are three short rings on a thin tube, which show its
     twist less well."""
     verts, faces, labels = shape()
-    frames, truth, frame = cine(verts, faces, labels, 10)
+    frames, truth, frame = cine(verts, faces, labels, 10, EDGE)
     fits, reports = track_frames(frames, 0, PARAMS, lambda i: np.random.default_rng(i))
     assert all(r["tracked"] for r in reports), [r.get("rejected") for r in reports]
     # neighbours a tenth of a cycle apart: the soft steps alone, no retry with the whole schedule
@@ -146,7 +74,7 @@ def test_known_cycle_is_tracked_within_a_millimetre_but_for_twist(shape, total_m
 
 def test_a_rejected_or_invalid_frame_is_left_out_and_the_next_starts_from_the_last_accepted():
     verts, faces, labels = bent_cone()
-    frames, _, _ = cine(verts, faces, labels, 6)
+    frames, _, _ = cine(verts, faces, labels, 6, EDGE)
     # frame 2 mislabelled (lv and rv swapped, as a bad predicted mask): its fit cannot agree
     v2, f2, l2 = frames[2]
     frames[2] = (v2, f2, np.where(l2 == S["lv"], S["rv"], np.where(l2 == S["rv"], S["lv"], l2)).astype(np.uint8))
@@ -220,7 +148,7 @@ def test_a_frame_the_soft_steps_cannot_fit_is_tried_once_with_the_whole_schedule
     import meshsar_builder.geometry.tracking as tracking
 
     verts, faces, labels = bent_cone()
-    frames, _, _ = cine(verts, faces, labels, 10)
+    frames, _, _ = cine(verts, faces, labels, 10, EDGE)
     real, schedules = tracking.register, []
 
     def register(*args, **kwargs):
@@ -234,3 +162,29 @@ def test_a_frame_the_soft_steps_cannot_fit_is_tried_once_with_the_whole_schedule
     fits, reports = track_frames(frames[:2], 0, PARAMS, lambda i: np.random.default_rng(i))
     assert schedules == [PARAMS.frame_steps, len(PARAMS.stiffness)]
     assert fits[1] is not None and reports[1]["tracked"] and reports[1]["stiffness_steps"] == len(PARAMS.stiffness)
+
+
+def test_tracking_bench_tracks_a_builds_ed_frames_through_the_known_cycle(tmp_path):
+    """`meshsar bench tracking` on a build folder: it takes the ED frame (not the other mesh), tracks it through
+    the cycle with the build's recipe, and reports the error it measures, judged against 1 mm."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    from meshsar_builder.bench.tracking import run
+    from meshsar_builder.geometry.meshfile import write_ply
+
+    build = tmp_path / "build"
+    (build / "remesh").mkdir(parents=True)
+    shutil.copy(Path(__file__).parents[1] / "manifests" / "demo.toml", build / "recipe.toml")
+    verts, faces, labels = phantom_ed()
+    for item, phase in (("bv-f01", "ED"), ("bv-f05", "ES")):
+        write_ply(build / "remesh" / f"{item}.ply", verts, faces, labels)
+        (build / "remesh" / f"{item}.json").write_text(json.dumps({"stage": "remesh", "item": item, "phase": phase}))
+    result = run(tmp_path / "out", build, samples=5, frames=4)
+    assert list(result["meshes"]) == ["bv-f01"]
+    mesh = result["meshes"]["bv-f01"]
+    assert mesh["frames_tracked"] == "3 of 3" and 2.0 < mesh["motion_mm"] < 6.0
+    assert 0 < mesh["error_mm"] < 0.4 * mesh["motion_mm"]  # far better than leaving the ED mesh where it is
+    assert mesh["met"] == (mesh["error_mm"] <= 1.0) and result["met"] == mesh["met"]
+    assert json.loads((tmp_path / "out" / "tracking.json").read_text()) == result

@@ -21,7 +21,10 @@ Parts:
   the production echo as a reference model, about 4 minutes a sample);
 - speckle: the diffuse component's statistics and cost (bench/speckle.py);
 - inference: seconds per sample for `meshsar fit` and `--refine` on 3 shape-model test
-  samples of the same build, against their budgets (bench/inference.py).
+  samples of the same build, against their budgets (bench/inference.py);
+- tracking: frame tracking judged on known motion, on $MESHSAR_BENCH_SAMPLES (5) of a build's
+  own remeshed ED frames (a real cine build's, for one), $MESHSAR_BENCH_DATA or build/demo
+  (bench/tracking.py).
 The geometry, pipeline and radar parts run with one BLAS thread, like the stages do; the trainer
 and inference parts with torch's default threads, like training and `meshsar fit` do.
 """
@@ -44,7 +47,8 @@ from meshsar_builder.pipeline.io import read_json, write_json
 from meshsar_builder.pipeline.recipe import load
 
 DEMO = Path(__file__).resolve().parents[2] / "manifests" / "demo.toml"
-PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss", "speckle", "inference", "radar-throughput")
+PARTS = ("radar", "geometry", "pipeline", "trainer", "radar-loss", "speckle", "inference", "radar-throughput",
+         "tracking")
 # The radar-loss, speckle and inference parts' build (format 2, with a loss grid): MESHSAR_BENCH_DATA, else build/demo.
 RADAR_LOSS_DATA = "build/demo"
 
@@ -376,12 +380,19 @@ def bench_inference(out: Path) -> dict:
     return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA))
 
 
+def bench_tracking(out: Path) -> dict:
+    from meshsar_builder.bench.tracking import run
+
+    return run(out, os.environ.get("MESHSAR_BENCH_DATA", RADAR_LOSS_DATA),
+               samples=int(os.environ.get("MESHSAR_BENCH_SAMPLES", "5")))
+
+
 def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
     """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision) and where
     the radar-throughput part renders."""
     out.mkdir(parents=True, exist_ok=True)
     benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline,
                "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss,
-               "speckle": bench_speckle, "inference": bench_inference,
+               "speckle": bench_speckle, "inference": bench_inference, "tracking": bench_tracking,
                "radar-throughput": lambda folder: bench_radar_throughput(folder, device)}
     return {part: benches[part](out) for part in parts}
