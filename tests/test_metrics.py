@@ -8,7 +8,7 @@ import trimesh
 
 pytest.importorskip("torch")
 
-from meshsar_builder.geometry.meshing import closest_among, point_to_surface  # noqa: E402
+from meshsar_builder.geometry.closest import closest_among, point_to_surface  # noqa: E402
 from meshsar_builder.trainer import metrics as M  # noqa: E402
 
 

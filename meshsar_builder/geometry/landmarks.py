@@ -40,7 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from meshsar_builder.geometry.measures import vertex_areas
-from meshsar_builder.geometry.meshing import point_to_surface
+from meshsar_builder.geometry.closest import point_to_surface
 from meshsar_builder.geometry.structures import STRUCTURES
 
 NAMES = {value: name for name, value in STRUCTURES.items()}

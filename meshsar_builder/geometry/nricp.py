@@ -55,7 +55,8 @@ from scipy.spatial import cKDTree
 from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.landmarks import face_labels
 from meshsar_builder.geometry.measures import edge_lengths, flipped_faces, unique_edges
-from meshsar_builder.geometry.meshing import closest_among, transfer_labels
+from meshsar_builder.geometry.closest import closest_among
+from meshsar_builder.geometry.meshing import transfer_labels
 from meshsar_builder.geometry.nricp_solve import Operator, pcg, preconditioner, unknowns_order
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import simplify

@@ -27,7 +27,7 @@ from meshsar_builder.geometry.landmarks import (
     landmark_warp,
 )
 from meshsar_builder.geometry.measures import flipped_faces
-from meshsar_builder.geometry.meshing import point_to_surface
+from meshsar_builder.geometry.closest import point_to_surface
 from meshsar_builder.geometry.nricp import Subject, Surface, nricp
 from meshsar_builder.geometry.registration_params import RegistrationParams
 from meshsar_builder.geometry.remesh import require_valid

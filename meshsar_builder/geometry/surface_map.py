@@ -6,7 +6,7 @@ import numpy as np
 import scipy.sparse as sp
 import trimesh
 
-from meshsar_builder.geometry.meshing import closest_points
+from meshsar_builder.geometry.closest import closest_points
 
 
 def closest_barycentric(points: np.ndarray, verts: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

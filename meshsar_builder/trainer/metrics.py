@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 
 from meshsar_builder.geometry.intersections import self_intersecting_faces
-from meshsar_builder.geometry.meshing import point_to_surface
+from meshsar_builder.geometry.closest import point_to_surface
 from meshsar_builder.geometry.surface_map import closest_barycentric
 from meshsar_builder.radar.visibility import embree_intersector
 from meshsar_builder.trainer.losses import mesh_edges, sample_surface, uniform_laplacian
