@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 from scipy import ndimage
 from skimage.measure import euler_number
 
-import meshsar_builder.geometry.meshing as meshing
 from meshsar_builder.geometry.meshing import (
     MeshingParams,
     is_closed_genus0,
@@ -268,9 +267,9 @@ def thick_slice_stack(slice_mm, offset_mm=0.0):
     return half_spheroid_sdf(np.stack(np.meshgrid(*axes, indexing="ij"), -1)) <= 0, affine
 
 
-def volume_and_distance(mask, affine):
+def volume_and_distance(mask, affine, params):
     """(relative volume error, mean distance (mm) to the true surface) of the half-spheroid's mesh."""
-    _, m = mesh_of(mask, affine)
+    _, m = mesh_of(mask, affine, params)
     assert m.is_watertight and m.euler_number == 2
     points, _ = trimesh.sample.sample_surface(m, 5000, seed=0)
     return m.volume / (2 / 3 * np.pi * 25**2 * 70) - 1, np.abs(half_spheroid_sdf(points)).mean()
@@ -278,26 +277,24 @@ def volume_and_distance(mask, affine):
 
 @pytest.mark.parametrize("slice_mm", [6.0, 8.0, 10.0])
 @pytest.mark.parametrize("offset_mm", [0.0, 0.5])
-def test_thick_slices_keep_the_volume_and_cut_the_base_flat(slice_mm, offset_mm, monkeypatch):
-    """An LV-like shape sliced as a short-axis stack: its volume within 2 % of the analytic one, and both the
-    volume and the mean distance to the true surface better than with the base rounded as the interpolation
-    alone rounds it (measured: -0.3 / +0.0 / +0.7 % and 0.17 / 0.22 / 0.28 mm, against -1.1 / -1.6 / -2.1 % and
-    0.18 / 0.24 / 0.30 mm at 6 / 8 / 10 mm; linear resampling lost 1.9-4.0 %)."""
+def test_thick_slices_keep_the_volume_and_cut_the_base_flat(slice_mm, offset_mm):
+    """An LV-like shape sliced as a short-axis stack: with flat_ends, its volume within 2 % of the analytic one,
+    and both the volume and the mean distance to the true surface better than with the base rounded as the
+    interpolation alone rounds it, the default (measured: -0.3 / +0.0 / +0.7 % and 0.17 / 0.22 / 0.28 mm, against
+    -1.1 / -1.6 / -2.1 % and 0.18 / 0.24 / 0.30 mm at 6 / 8 / 10 mm; linear resampling lost 1.9-4.0 %)."""
     mask, affine = thick_slice_stack(slice_mm, offset_mm)
-    volume, distance = volume_and_distance(mask, affine)
-    monkeypatch.setattr(meshing, "CUT_AREA_RATIO", np.inf)  # no end is a cut: the base rounded
-    rounded_volume, rounded_distance = volume_and_distance(mask, affine)
-    assert abs(volume) < 0.02 and abs(volume) < abs(rounded_volume)
+    volume, distance = volume_and_distance(mask, affine, MeshingParams(flat_ends=True))
+    rounded_volume, rounded_distance = volume_and_distance(mask, affine, MeshingParams())
+    assert abs(volume) < 0.02 and abs(volume) < abs(rounded_volume) < 0.025
     assert distance < rounded_distance < 0.3
 
 
 @pytest.mark.parametrize("voxel", [(1.5, 1.5, 8.0), (1.5, 1.5, 10.0)])
-def test_a_thick_slice_stack_that_closes_keeps_its_rounded_ends(voxel, monkeypatch):
-    """A sphere closes at both ends of the stack (its last slices narrower than the ones before): it meshes to the
-    same bytes with the flat cut as without it, where a flat cap would make its poles discs."""
+def test_a_thick_slice_stack_that_closes_keeps_its_rounded_ends(voxel):
+    """A sphere closes at both ends of the stack (its last slices narrower than the ones before): with flat_ends it
+    meshes to the same bytes as without, where a flat cap would make its poles discs."""
     mask, affine = ball_volume(np.ceil(90 / np.asarray(voxel)).astype(int), voxel, 30.0, centre_mm=(0.0, 0.0, 2.0))
-    surface, _ = mesh_of(mask, affine)
-    monkeypatch.setattr(meshing, "CUT_AREA_RATIO", np.inf)
+    surface, _ = mesh_of(mask, affine, MeshingParams(flat_ends=True))
     rounded, _ = mesh_of(mask, affine)
     assert np.array_equal(surface.verts, rounded.verts) and np.array_equal(surface.faces, rounded.faces)
 

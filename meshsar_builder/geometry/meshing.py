@@ -49,6 +49,9 @@ class MeshingParams:
     island_fraction: float = 0.05  # a label's components below this fraction of it are dropped
     max_volume_change: float = 0.02  # largest change of a chamber's or the myocardium's volume
     max_surface_shift_mm: float = 0.5  # largest two-sided mean distance to the unrepaired surface
+    # A thick-slice stack that cuts the shape (its base) ends flat at its last slice's face (_cut_flat): the
+    # volume right, tracking on known motion worse (docs/topology.md), so off by default.
+    flat_ends: bool = False
 
     def __post_init__(self):
         if not self.spacing_mm > 0:
@@ -164,8 +167,9 @@ def _cut_flat(sdf: np.ndarray, mask: np.ndarray, axis: int) -> None:
 
 
 def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams, name: str = "label map") -> IsoGrid:
-    """Signed distance of a mask resampled to `spacing_mm` and smoothed: the field meshed at 0. In a thick-slice
-    stack (THICK_SLICE_RATIO), an end where the stack cuts the shape ends flat at its slice's face (_cut_flat).
+    """Signed distance of a mask resampled to `spacing_mm` and smoothed: the field meshed at 0. With
+    params.flat_ends, in a thick-slice stack (THICK_SLICE_RATIO), an end where the stack cuts the shape ends flat
+    at its slice's face (_cut_flat).
 
     mask : (X, Y, Z) bool, affine : (4, 4) voxel -> RAS mm; name : the input, for errors.
     """
@@ -185,14 +189,14 @@ def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams, name: 
     ]
     sdf = signed_distance(padded, voxel_mm)
     slice_axis = int(np.argmax(voxel_mm))
-    if voxel_mm[slice_axis] >= THICK_SLICE_RATIO * voxel_mm.min():
+    if params.flat_ends and voxel_mm[slice_axis] >= THICK_SLICE_RATIO * voxel_mm.min():
         _cut_flat(sdf, padded, slice_axis)
     axes = [np.arange(0, n - 1 + 1e-9, s) for n, s in zip(padded.shape, step)]
     # Cubic B-spline, not linear: across thick slices (5-10 mm short-axis stacks) a linear blend
     # of the distance cuts chords inside a convex surface. Measured at 6/8/10 mm slices: a 30 mm
     # sphere's volume -1.7/-3.1/-3.5 % linear, -1.0/-1.3/-1.4 % cubic; a half-spheroid LV
     # (r 25, L 70, base on a slice boundary) -1.9/-3.0/-4.0 % against -1.2/-1.7/-1.9 %, with
-    # the mean distance to the true surface no worse; with its base cut flat, -0.3/+0.0/+0.7 %
+    # the mean distance to the true surface no worse; with its base cut flat (flat_ends), -0.3/+0.0/+0.7 %
     # and closer to the true surface (docs/topology.md).
     iso = resample_cubic(sdf, axes).astype(np.float32)
     if params.sigma_mm > 0:
