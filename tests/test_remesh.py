@@ -191,3 +191,32 @@ def test_a_surface_that_fails_at_every_edge_names_each(ellipsoid, monkeypatch):
     monkeypatch.setattr(remesh_module, "_remesh_at", never)
     with pytest.raises(MeshError, match=r"no edge length .*3 mm: crossed at 3; 2.4 mm: crossed at 2.4; 1.92 mm: .*1.5 mm"):
         remesh(*ellipsoid, RemeshParams(edge_mm=3.0))
+
+
+def test_the_remesh_stage_records_a_finer_edge_in_its_sidecar(ellipsoid, tmp_path, monkeypatch):
+    """The stage's record carries the RemeshWarning's text where the edge asked for failed, and no warning where it
+    passed: the user reads in remesh/<item>.json that and why the mesh is finer."""
+    from pathlib import Path
+
+    import stages.remesh as stage
+    from meshsar_builder.geometry.meshfile import write_ply
+    from meshsar_builder.pipeline.recipe import load
+    from meshsar_builder.pipeline.runner import Context, Item
+
+    ctx = Context(out=tmp_path, recipe=load(Path(__file__).parents[1] / "manifests" / "smoke.toml"))
+    (tmp_path / "remesh").mkdir()
+    source = tmp_path / "mesh.ply"
+    verts, faces = ellipsoid
+    write_ply(source, verts, faces, np.full(len(verts), 1, np.uint8))
+    item = Item("one", ("one.ply",), inputs=(str(source),), data={"subject": "s"})
+    assert stage.run(ctx, item)["warnings"] == []
+    at, edge = remesh_module._remesh_at, ctx.recipe.remesh.edge_mm
+
+    def thin_at_the_asked_edge(verts, faces, params):
+        if params.edge_mm >= edge:
+            raise MeshError("remeshed surface: 2 components instead of 1")
+        return at(verts, faces, params)
+
+    monkeypatch.setattr(remesh_module, "_remesh_at", thin_at_the_asked_edge)
+    [message] = stage.run(ctx, item)["warnings"]
+    assert message.startswith(f"remeshed at {edge * 0.8:g} mm edges, not {edge:g} mm") and "2 components" in message

@@ -239,21 +239,19 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
     none over it) is coarsened by _coarsen_onto; any other is remeshed with every iteration
     checked against it.
     """
-    try:
-        return _remesh_at(verts, faces, params)
-    except MeshError as error:
-        if surface_problems(mesh_checks(verts, faces)):  # an input that is not closed genus 0 is no thinner at finer edges
-            raise
-        failed = [f"{params.edge_mm:g} mm: {error}"]
-    for factor in FINER_EDGES:
-        finer = dataclasses.replace(params, edge_mm=params.edge_mm * factor)
+    failed: list[str] = []
+    for factor in (1.0, *FINER_EDGES):
+        attempt = dataclasses.replace(params, edge_mm=params.edge_mm * factor)
         try:
-            result = _remesh_at(verts, faces, finer)
+            result = _remesh_at(verts, faces, attempt)
         except MeshError as error:
-            failed.append(f"{finer.edge_mm:g} mm: {error}")
+            if not failed and surface_problems(mesh_checks(verts, faces)):
+                raise  # an input that is not closed genus 0 is no thinner at finer edges
+            failed.append(f"{attempt.edge_mm:g} mm: {error}")
             continue
-        warnings.warn(f"remeshed at {finer.edge_mm:g} mm edges, not {params.edge_mm:g} mm (parts too thin for it); "
-                      + "; ".join(failed), RemeshWarning, stacklevel=2)
+        if failed:
+            warnings.warn(f"remeshed at {attempt.edge_mm:g} mm edges, not {params.edge_mm:g} mm (parts too thin for "
+                          f"it); " + "; ".join(failed), RemeshWarning, stacklevel=2)
         return result
     raise MeshError("no edge length gave a closed genus-0 surface: " + "; ".join(failed))
 
