@@ -94,4 +94,6 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
 # Version 13: a frame fit's second soft step preconditioned by the first's factorisation (frame_carried_iterations).
 # Version 14: register v19's preconditioner and tolerance; each step factorises its own matrix again (it costs less
 # than the carried factor's extra iterations).
-STAGE = Stage(name=NAME, version=14, plan=plan, run=run, after=("remesh",))
+# Version 15: a frame's ring points counted in each ring's affine-normalised plane and turned to follow its
+# neighbour's rings (landmarks.py).
+STAGE = Stage(name=NAME, version=15, plan=plan, run=run, after=("remesh",))

@@ -7,11 +7,16 @@ landmark term needs. From the labels alone, every mesh gets:
 - `ring:<a>-<b>`: the centre of the junction between structures a and b (the mean of the
   midpoints of the edges from one to the other), e.g. a valve or a vessel ring;
 - `ring:<a>-<b>@<j>` (with `ring_points` K > 0): a mean of those midpoints weighted by a
-  smooth window about the angle 2 pi j / K around the ring's centre, in the plane of the
-  midpoints (the least principal axis, turned from structure b's centroid toward a's, is its
-  normal), counted from the direction toward the centroid of the other structures (of the
-  labelled surface if there are none): K points along the ring, so its motion along the
-  surface (a base descending along the ventricular walls) is seen, not only its centre's;
+  smooth window about the angle 2 pi j / K around the ring, in the plane of the midpoints (the
+  least principal axis, turned from structure b's centroid toward a's, is its normal): K
+  points along the ring, so its motion along the surface (a base descending along the
+  ventricular walls) is seen, not only its centre's. Angles are counted in the ring's
+  affine-normalised plane (whitened by the second moments of the region the ring encloses),
+  so an in-plane affine motion (the shear of a twist, the shortening of a base descent, a
+  contraction) moves the points with the tissue up to one turn; the turn's origin is the
+  direction toward the centroid of the other structures (of the labelled surface if there
+  are none), or, given the ring of a mesh to follow (`like`: a tracked frame's neighbour), the
+  turn that best lays this ring's normalised shape onto that one's;
 - `apex`: the mean of the ventricular (lv, myo) vertices within `APEX_BAND_MM` of the one
   farthest from the centroid of the other structures (the base of the heart); on a
   biventricular (short-axis) map, whose only other structure is the RV beside the LV, the one
@@ -34,7 +39,7 @@ Two meshes share the landmarks whose keys both have, so each pair means the same
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -51,6 +56,14 @@ APEX_MIN_ALIGNMENT = 0.7
 APEX_DISC_COHERENCE = 0.5
 BIVENTRICULAR = {STRUCTURES["lv"], STRUCTURES["myo"], STRUCTURES["rv"]}
 RING_MIN_MM = 20.0
+RING_BINS = 360  # of a ring's radius profile, one a degree
+RING_PROFILE_SMOOTHING_DEG = 6.0
+RING_MAX_TURN_DEG = 30.0  # a ring follows its neighbour's by at most this turn
+RING_MIN_CONTRAST = 0.02  # sd over mean of a profile to follow (a circle has none)
+# Turned, a profile must match the one it follows to within this fraction of that one's variance.
+# Known motion (affine in a junction's plane): <= 0.11 from ED to end-systole; real ED and ES frames
+# alone (ACDC; the rings change shape): 0.23-2.1, where a turn lands at random (20-29 deg).
+RING_MAX_MISFIT = 0.2
 
 
 def structure_name(label: int) -> str:
@@ -84,6 +97,7 @@ class Landmarks:
     weights: sp.csr_matrix
     confidence: tuple[float, ...] = ()
     dropped: tuple[tuple[str, str], ...] = ()
+    ring_shapes: dict[str, np.ndarray] = field(default_factory=dict)  # ring key -> (RING_BINS,) radius profile
 
     def points(self, verts: np.ndarray) -> np.ndarray:
         """verts (n, 3) -> landmark points (k, 3)."""
@@ -92,23 +106,24 @@ class Landmarks:
     def select(self, keys: list[str]) -> Landmarks:
         rows = [self.keys.index(k) for k in keys]
         confidence = tuple(self.confidence[r] for r in rows) if self.confidence else ()
-        return Landmarks(tuple(keys), self.weights[rows], confidence, self.dropped)
+        return Landmarks(tuple(keys), self.weights[rows], confidence, self.dropped, self.ring_shapes)
 
 
 def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, min_vertices: int = 10,
-                    ring_points: int = 0) -> Landmarks:
+                    ring_points: int = 0, like: Landmarks | None = None) -> Landmarks:
     """Landmarks of a labelled surface (see the module docstring).
 
     verts : (n, 3) float mm, faces : (m, 3) int, labels : (n,) int (0 = unlabelled, skipped).
     Structures that form no region (surface_regions: fewer than `min_vertices` inner
     vertices) and junctions with fewer than `min_vertices` crossing edges give no landmark (a
     strip or a few stray vertices have no stable centre). ring_points: sector points per ring
-    (0: none).
+    (0: none); like: landmarks of a mesh whose ring points these should follow (their
+    `ring_shapes`; the module docstring).
     """
     verts, faces, labels = np.asarray(verts, dtype=np.float64), np.asarray(faces), np.asarray(labels).astype(np.int64)
     n = len(verts)
     areas = vertex_areas(verts, faces)
-    keys, rows, confidence, dropped = [], [], [], []
+    keys, rows, confidence, dropped, shapes = [], [], [], [], {}
 
     def add(key: str, index: np.ndarray, weight: np.ndarray, sure: float = 1.0) -> None:
         keys.append(key)
@@ -132,7 +147,10 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
                     continue
                 # Mean of the crossing edges' midpoints: on the boundary itself, not on one side of it.
                 add(key, crossing.ravel(), np.ones(crossing.size), length / RING_MIN_MM)
-                sectors = _ring_sectors(verts, crossing, labels, a, b, ring_points) if ring_points else []
+                sectors = []
+                if ring_points:
+                    sectors, shapes[key] = _ring_sectors(verts, crossing, labels, a, b, ring_points,
+                                                         None if like is None else like.ring_shapes.get(key))
                 for j, chosen, weight in sectors:
                     add(f"{key}@{j}", chosen.ravel(), np.repeat(weight, 2), length / RING_MIN_MM)
     ventricle = np.isin(labels, VENTRICLE)
@@ -165,34 +183,42 @@ def label_landmarks(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, mi
         else:
             add("apex", band, np.ones(len(band)), min(elongation / APEX_MIN_ELONGATION, alignment / APEX_MIN_ALIGNMENT))
     weights = sp.vstack(rows, format="csr") if rows else sp.csr_matrix((0, n))
-    return Landmarks(tuple(keys), weights, tuple(confidence), tuple(dropped))
+    return Landmarks(tuple(keys), weights, tuple(confidence), tuple(dropped), shapes)
 
 
-def _ring_sectors(verts: np.ndarray, crossing: np.ndarray, labels: np.ndarray, a: int, b: int,
-                  count: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """(j, crossing edges (e, 2), their weights (e,)) for the `count` points along a junction
-    ring (see the module docstring). Point j weighs each crossing edge's midpoint by a smooth
-    window of its angle about the ring's centre, exp(kappa (cos(angle - 2 pi j / count) - 1)),
-    half its peak at half a sector's width: hard sectors would jump as midpoints cross their
-    borders from one mesh to the next. A point whose window holds less than 2 edges' weight
-    (a gap in an open junction) is left out."""
+def _ring_sectors(verts: np.ndarray, crossing: np.ndarray, labels: np.ndarray, a: int, b: int, count: int,
+                  like: np.ndarray | None = None) -> tuple[list[tuple[int, np.ndarray, np.ndarray]], np.ndarray | None]:
+    """The `count` points along a junction ring (see the module docstring): ([(j, crossing edges
+    (e, 2), their weights (e,))], the ring's radius profile (RING_BINS,) from its turn's origin,
+    None where it has no origin). Point j weighs each crossing edge's midpoint by a smooth
+    window of its normalised angle, exp(kappa (cos(angle - 2 pi j / count) - 1)), half its peak
+    at half a sector's width: hard sectors would jump as midpoints cross their borders from one
+    mesh to the next. A point whose window holds less than 2 edges' weight (a gap in an open
+    junction) is left out. like: the profile of the ring to follow, or None."""
     mid = 0.5 * (verts[crossing[:, 0]] + verts[crossing[:, 1]])
     centre = mid.mean(axis=0)
-    normal = np.linalg.eigh(np.cov((mid - centre).T))[1][:, 0]
+    axes = np.linalg.eigh(np.cov((mid - centre).T))[1]
+    normal = axes[:, 0]
     # Turned from b's side toward a's: a cap (a base's cavity patch) lies nearly in the ring's
     # plane, so its own centroid alone leaves the sign to chance.
     if (verts[labels == a].mean(axis=0) - verts[labels == b].mean(axis=0)) @ normal < 0:
         normal = -normal
+    plane = np.stack([axes[:, 2], np.cross(normal, axes[:, 2])], axis=1)  # (3, 2), right-handed about normal
+    flat = (mid - centre) @ plane
+    region_centre, root = _region_moments(flat)
+    whitened = (flat - region_centre) @ root  # (e, 2)
     # Counted from the structures beside the junction: the whole surface's centroid sits near
     # the axis of a ring around the largest structure, where its direction is unstable.
     others = (labels != 0) & (labels != a) & (labels != b)
-    toward = verts[others if others.any() else labels != 0].mean(axis=0) - centre
-    first = toward - (toward @ normal) * normal
-    if np.linalg.norm(first) < 1e-6 * max(1.0, np.linalg.norm(toward)):
-        return []  # that centroid on the ring's axis: no direction to count from
-    first /= np.linalg.norm(first)
-    second = np.cross(normal, first)
-    angle = np.arctan2((mid - centre) @ second, (mid - centre) @ first)
+    toward = ((verts[others if others.any() else labels != 0].mean(axis=0) - centre) @ plane - region_centre) @ root
+    if np.linalg.norm(toward) < 1e-6:
+        return [], None  # that centroid on the ring's axis: no direction to count from
+    angle = np.arctan2(whitened[:, 1], whitened[:, 0]) - np.arctan2(toward[1], toward[0])
+    radius = np.linalg.norm(whitened, axis=1)
+    profile = _radius_profile(angle, radius)
+    if like is not None:
+        turn = _best_turn(profile, like)
+        angle, profile = angle - turn, _radius_profile(angle - turn, radius)
     kappa = np.log(2.0) / (1.0 - np.cos(np.pi / count))
     out = []
     for j in range(count):
@@ -200,7 +226,59 @@ def _ring_sectors(verts: np.ndarray, crossing: np.ndarray, labels: np.ndarray, a
         keep = weight >= 1e-3
         if weight[keep].sum() >= 2.0:
             out.append((j, crossing[keep], weight[keep]))
-    return out
+    return out, profile
+
+
+def _region_moments(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The region a ring of points (e, 2) encloses, as the fan of triangles from their mean through
+    them in angular order: (its centroid (2,), the inverse square root (2, 2) of its second
+    moments, floored at 1e-6 of the larger; points along a line give their own moments). Both
+    move with an affine map of the plane (each triangle's area scales alike), where the points'
+    own moments follow their spacing along the ring."""
+    start = flat.mean(axis=0)
+    ring = flat[np.argsort(np.arctan2(*(flat - start).T[::-1]))] - start
+    after = np.roll(ring, -1, axis=0)
+    area = 0.5 * np.abs(ring[:, 0] * after[:, 1] - ring[:, 1] * after[:, 0])  # (e,)
+    total = area.sum()
+    if total > 0:
+        centroid = (area[:, None] * (ring + after)).sum(axis=0) / (3 * total)
+        # a triangle (0, u, v)'s second moment about 0: area (u u' + v v' + (u v' + v u') / 2) / 6
+        second = np.einsum("e,ei,ej->ij", area / 6, ring, ring) + np.einsum("e,ei,ej->ij", area / 6, after, after) + (
+            np.einsum("e,ei,ej->ij", area / 12, ring, after) + np.einsum("e,ei,ej->ij", area / 12, after, ring))
+        covariance = second / total - np.outer(centroid, centroid)
+    else:  # points along a line enclose nothing: their own moments
+        centroid, covariance = np.zeros(2), ring.T @ ring / len(ring)
+    values, vectors = np.linalg.eigh(covariance)
+    values = np.maximum(values, 1e-6 * values.max())  # nor across a line
+    return start + centroid, vectors @ np.diag(values ** -0.5) @ vectors.T
+
+
+def _radius_profile(angle: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(RING_BINS,) radius of a normalised ring at each degree, a Gaussian-weighted mean of its
+    points' radii (e,) over their angles (e,) (rad)."""
+    grid = np.linspace(-np.pi, np.pi, RING_BINS, endpoint=False)
+    apart = np.angle(np.exp(1j * (grid[:, None] - angle[None, :])))  # (RING_BINS, e)
+    weight = np.exp(-0.5 * (apart / np.radians(RING_PROFILE_SMOOTHING_DEG)) ** 2)
+    return (weight @ radius) / np.maximum(weight.sum(axis=1), 1e-300)
+
+
+def _best_turn(profile: np.ndarray, like: np.ndarray) -> float:
+    """The turn (rad, within RING_MAX_TURN_DEG) of a ring's origin that lays its radius profile
+    (RING_BINS,) best onto `like` (least squares, refined between degrees by a parabola); 0
+    where `like` is too round to show one (RING_MIN_CONTRAST), the best lies at the limit, or
+    the turned profile still misses `like` (RING_MAX_MISFIT): the ring changed its shape, not
+    only its turn."""
+    if np.std(like) < RING_MIN_CONTRAST * np.mean(like):
+        return 0.0
+    limit = int(RING_MAX_TURN_DEG * RING_BINS / 360)
+    shifts = np.arange(-limit, limit + 1)
+    cost = np.array([np.mean((np.roll(profile, -k) - like) ** 2) for k in shifts])
+    best = int(np.argmin(cost))
+    if best in (0, len(shifts) - 1) or cost[best] > RING_MAX_MISFIT * np.var(like):
+        return 0.0
+    left, mid, right = cost[best - 1:best + 2]
+    step = 0.5 * (left - right) / max(left - 2 * mid + right, 1e-300)
+    return float(np.radians((shifts[best] + step) * 360 / RING_BINS))
 
 
 def _basal_disc(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float] | None:

@@ -329,8 +329,10 @@ def _register_once(
     dropped: dict[str, str] = {}
     if template_labels is not None and subject_labels is not None:
         labels = (np.asarray(template_labels), np.asarray(subject_labels))
-        both = (label_landmarks(template_verts, template_faces, labels[0], ring_points=params.ring_points),
-                label_landmarks(subject_verts, subject_faces, labels[1], ring_points=params.ring_points))
+        template_marks = label_landmarks(template_verts, template_faces, labels[0], ring_points=params.ring_points)
+        # The subject's ring points follow the template's: a tracked frame's neighbour.
+        both = (template_marks, label_landmarks(subject_verts, subject_faces, labels[1], ring_points=params.ring_points,
+                                                like=template_marks))
         dropped = dropped_landmarks(*both)
         marks = common_landmarks(*both)
         dropped |= {key: "moved away by an earlier fit (landmark_tolerance_mm)" for key in exclude if key in marks[0].keys}
