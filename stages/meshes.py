@@ -81,4 +81,5 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 6: a voxel size from pixdim where the sform disagrees (label_maps.voxel_affine: real ACDC files).
 # Version 7: a thick-slice stack that cuts the shape ends flat at its last slice's face (meshing._cut_flat).
 # Version 8: that only with [meshing] flat_ends = true (default false: rounded, as version 6).
-STAGE = Stage(name=NAME, version=8, plan=plan, run=run)
+# Version 9: flat_ends on by default again: with track v15's ring points the flat bases track as well as rounded ones.
+STAGE = Stage(name=NAME, version=9, plan=plan, run=run)
