@@ -50,11 +50,11 @@ def bent_cone():
 
 @pytest.mark.parametrize("shape, total_mm", [(phantom_ed, 0.55), (bent_cone, 1.25)])
 def test_known_cycle_is_tracked_within_a_millimetre_but_for_twist(shape, total_mm):
-    """Measured (2.5 mm edges, 10 frames, about the LV's long axis; track v15): phantom 0.39 mm
-    mean (twist part 0.29, the rest 0.21), at most 0.73; the bent cone 1.16 mm (twist 0.98, the
-    rest 0.45), at most 2.15. With ring points counted by plain angle from the other
-    structures' centroid (track v14): 0.61 and 1.30 mm. The cone's junctions are three short
-    rings on a thin tube, which show its twist less well."""
+    """Measured (2.5 mm edges, 10 frames, about the LV's long axis; track v15): phantom 0.37 mm
+    mean (twist part 0.27, the rest 0.20), at most 0.57 (its base rounded: 0.39, at most 0.73);
+    the bent cone 1.16 mm (twist 0.98, the rest 0.45), at most 2.15. With ring points counted by
+    plain angle from the other structures' centroid (track v14, base rounded): 0.61 and 1.30 mm.
+    The cone's junctions are three short rings on a thin tube, which show its twist less well."""
     verts, faces, labels = shape()
     frames, truth, frame = cine(verts, faces, labels, 10, EDGE)
     fits, reports = track_frames(frames, 0, PARAMS, lambda i: np.random.default_rng(i))
@@ -136,7 +136,6 @@ def test_ring_points_of_a_frame_follow_its_neighbours_rings_through_a_twist(shap
     nothing to follow, and keeps its points; 0.70 -> 0.56 mm with the base rounded), bent cone
     0.97 -> 0.73 mm. On real ventricles the RV junction's points went from 2.9 to 0.4-0.7 mm
     (docs/registration.md)."""
-
     from meshsar_builder.geometry.landmarks import common_landmarks, label_landmarks
 
     verts, faces, labels = shape()
