@@ -7,7 +7,13 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from meshsar_builder.geometry.landmarks import RING_BINS, RING_MAX_TURN_DEG, _best_turn, _region_moments, label_landmarks
+from meshsar_builder.geometry.landmarks import (
+    RING_BINS,
+    RING_MAX_TURN_DEG,
+    _best_turn,
+    _region_moments,
+    label_landmarks,
+)
 from tests.test_tracking import bent_cone
 
 

@@ -168,8 +168,8 @@ def _cut_flat(sdf: np.ndarray, mask: np.ndarray, axis: int) -> None:
 
 def iso_grid(mask: np.ndarray, affine: np.ndarray, params: MeshingParams, name: str = "label map") -> IsoGrid:
     """Signed distance of a mask resampled to `spacing_mm` and smoothed: the field meshed at 0. With
-    params.flat_ends (the default), in a thick-slice stack (THICK_SLICE_RATIO), an end where the stack cuts the shape ends flat
-    at its slice's face (_cut_flat).
+    params.flat_ends (the default), in a thick-slice stack (THICK_SLICE_RATIO), an end where the stack cuts
+    the shape ends flat at its slice's face (_cut_flat).
 
     mask : (X, Y, Z) bool, affine : (4, 4) voxel -> RAS mm; name : the input, for errors.
     """
