@@ -5,6 +5,7 @@ is a Wilcoxon signed-rank over test samples of the seed means."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import shutil
 
 import numpy as np
@@ -155,3 +156,27 @@ def test_a_checkpoint_that_trained_otherwise_is_not_branched_from(ablation, tmp_
     with pytest.raises(InputError, match="did not train as"):
         branch_run(folder / "no_radar-seed-1", tmp_path / "run", config)
     assert not (tmp_path / "run").exists()
+
+
+def test_another_radar_loss_reuses_the_warm_ups_and_the_no_radar_arm(ablation, tmp_path):
+    """The warm-up never computes the radar term, so an ablation of another radar loss (here the depth loss,
+    smoothed otherwise) starts from the same warm-ups and keeps the no-radar arm: only its radar runs train."""
+    from meshsar_builder.trainer.train import same_run
+
+    data, config, folder, _ = ablation
+    for run in folder.iterdir():
+        if run.name.startswith(("warmup-", "no_radar-")):
+            shutil.copytree(run, tmp_path / run.name)
+    kept = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    other = tmp_path / "other.toml"
+    other.write_text(config.read_text().replace("[radar_loss]", '[radar_loss]\nmode = "depth"\nsmooth_iterations = 7'))
+    result = radar_ablation(other, data, seeds=SEEDS, weights=WEIGHTS, epochs=2, samples=2000, progress=False,
+                            out=tmp_path)
+    assert {p: p.read_bytes() for p in kept} == kept  # neither retrained nor re-evaluated
+    branched = load_config(tmp_path / f"radar-w{result['chosen_weight']:g}-seed-1" / "config.toml")
+    assert (branched.radar_loss.mode, branched.radar_loss.smooth_iterations) == ("depth", 7)
+    warm_text = load_checkpoint(tmp_path / "warmup-seed-1" / "checkpoint.pt")["config_text"]
+    assert same_run(warm_text, branched, until=1)  # the shared epoch: radar weight 0 in both
+    # Where the radar term acts, its settings are part of the run: the same weights, another smoothing.
+    smoother = dataclasses.replace(branched, radar_loss=dataclasses.replace(branched.radar_loss, smooth_iterations=8))
+    assert same_run(branched.text, smoother, until=1) and not same_run(branched.text, smoother, until=2)
