@@ -352,21 +352,18 @@ def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict:
 
 
 def same_run(stored_text: str, config: TrainConfig, until: int | None = None) -> bool:
-    """Whether a checkpoint's config (its TOML text) describes the same run as `config`: equal in every
-    value but [run] device, since where a run trains is not part of what it is (it resumes elsewhere),
-    and [refine], which acts after training.
+    """Whether a checkpoint's config (its TOML text) describes the same run as `config`: equal in every value
+    but [run] device (where a run trains is not part of what it is) and [refine] (it acts after training).
 
-    until: only epochs 0..until-1 must train alike, so the name and the radar weight may differ
-    where radar_weight_at agrees on all of them (the warm-up that a radar ablation's arms share), and
-    the whole [radar_loss] table where that weight is 0 on all of them in both: the radar term was never
-    computed there (step_terms; validation leaves it out), so one warm-up serves ablations of any radar loss."""
+    until: only epochs 0..until-1 must train alike: the name and radar weight may differ where radar_weight_at
+    agrees on them (a radar ablation's warm-up), and all of [radar_loss] where it is 0 (no step computed it)."""
     stored = parse_config(stored_text)
     stored = dataclasses.replace(stored, run=dataclasses.replace(stored.run, device=config.run.device),
                                  refine=config.refine, text="")
     if until is not None and all(radar_weight_at(stored, e) == radar_weight_at(config, e) for e in range(until)):
-        silent = all(radar_weight_at(config, e) == 0 for e in range(until))
-        stored = dataclasses.replace(stored, name=config.name, radar_loss=config.radar_loss if silent else
-                                     dataclasses.replace(stored.radar_loss, weight=config.radar_loss.weight))
+        radar = config.radar_loss if not any(radar_weight_at(config, e) for e in range(until)) else \
+            dataclasses.replace(stored.radar_loss, weight=config.radar_loss.weight)
+        stored = dataclasses.replace(stored, name=config.name, radar_loss=radar)
     return stored == dataclasses.replace(config, text="")
 
 
@@ -505,8 +502,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels), noisy_loss_echo=recorded)
     train_set, val_set = Subset(every, train_ids), Subset(every, val_ids)
     state = load_checkpoint(run / CHECKPOINT, device) if (run / CHECKPOINT).exists() else None
-    # A run trained only `until` epochs (a radar ablation's warm-up) is the same run if those epochs train alike.
-    if state is not None and not same_run(state["config_text"], config, until=until):
+    if state is not None and not same_run(state["config_text"], config, until=until):  # until: those epochs alike
         raise InputError(f"{run}: holds a run of a different config; give another --out or remove it")
     info = state["info"] if state is not None else {
         "view_names": geometry.view_names, "frames": geometry.frames.tolist(), "fov_mm": geometry.fov_mm,
