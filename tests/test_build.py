@@ -420,3 +420,19 @@ def test_warm_hooks_run_once_in_the_builds_process_when_it_has_workers(tmp_path)
     assert record.read_text() == f"{os.getpid()} warm-kernels\n"
     run_stages(Context(out=tmp_path / "serial", recipe=None), stages, Results())  # items in this process: no hooks
     assert record.read_text().count("\n") == 1
+
+
+def test_dask_workers_load_pymeshlab_on_their_main_thread_and_exit_cleanly(capfd):
+    """Dask runs tasks on a thread pool; pymeshlab loaded first there (after scipy.sparse) left glibc's heap
+    corrupt and the worker aborted at exit. DaskPool has every worker load it on its main thread first."""
+    from meshsar_builder.pipeline.runner import DaskPool
+
+    # exec of source: unpickling the task imports nothing on the worker's main thread (a function of this file would
+    # import its module there first); scipy.sparse before pymeshlab, as the register stage's modules load them.
+    task = "import scipy.sparse, pymeshlab\npymeshlab.MeshSet()"
+    pool = DaskPool("local:1")
+    try:
+        assert pool.client.submit(exec, task, {}, pure=False).result() is None
+    finally:
+        pool.close()
+    assert "malloc" not in capfd.readouterr().err

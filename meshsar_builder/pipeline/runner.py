@@ -290,6 +290,9 @@ class DaskPool:
         else:
             self.cluster = None
             self.client = Client(scheduler, timeout="30s")
+        from meshsar_builder.pipeline.dask_worker import MainThreadImports
+
+        self.client.register_plugin(MainThreadImports())
         self.slots = 2 * max(1, sum(self.client.nthreads().values()))
 
     def submit(self, fn, *args, resources: dict | None = None):
