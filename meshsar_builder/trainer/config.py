@@ -57,10 +57,10 @@ class LossConfig:
 class RadarLossConfig:
     """[radar_loss]: the radar term (DESIGN section 10; docs/trainer.md "The radar loss").
 
-    mode "focused" (default.toml's): 1 - cosine of blurred, debiased power volumes, the target
+    mode "focused": 1 - cosine of blurred, debiased power volumes, the target
     focused from the loss-grid echo (echo_clean, or the recorded noisy echo) and the
     prediction from an image-domain splat of the predicted mesh (radar/focused.py).
-    "depth": the same volumes compared by their depth maps (focused.depth_distance, in mm).
+    "depth" (default.toml's): the same volumes compared by their depth maps (focused.depth_distance, in mm).
     "raw" (the paper's) and "profile": the relative L1 on the stored decimated echo.
     """
 
