@@ -118,6 +118,9 @@ def test_shipped_configs_parse():
     assert paper.radar_loss.ramp_epochs == 0 and paper.radar_loss.mode == "raw" and paper.radar_loss.balance == "none"
     assert paper.model.norm == "batch" and paper.optim.schedule == "constant" and not paper.run.amp
     assert default.model.stages == paper.model.stages == 3
+    # The radar loss chosen on validation (docs/trainer.md, "So default.toml uses it"): depth maps, 20 smoothing steps.
+    rc = default.radar_loss
+    assert (rc.mode, rc.smooth_iterations, rc.weight, rc.target) == ("depth", 20, 0.3, "clean")
 
 
 @pytest.mark.parametrize("text, message", [
