@@ -381,6 +381,37 @@ def test_a_local_dask_cluster_keeps_its_periodic_work_off_the_items():
         pool.close()
 
 
+def _sleep_and_time(seconds: float, origin: float) -> tuple[str, float, float]:
+    from distributed import get_worker
+
+    start = time.time()
+    time.sleep(seconds)
+    return get_worker().address, start - origin, time.time() - origin
+
+
+def test_a_local_dask_cluster_gives_a_worker_its_next_item_when_it_is_free():
+    """A long item and three short ones on 2 workers: the shorts run one after the other on the worker that the
+    long one leaves free. With Dask's default worker-saturation (1.1) the scheduler sent each worker two of them,
+    and a short one queued behind the long item waited until work stealing moved it, measured 0.95 s late, or
+    until the long one ended (runner.SCHEDULE_WHEN_FREE)."""
+    from meshsar_builder.pipeline.runner import DaskPool
+
+    pool = DaskPool("local:2")
+    try:
+        origin = time.time()  # the scheduler queues a task group once it outnumbers the threads twice, as a build's
+        for future in [pool.submit(_sleep_and_time, 0.01, origin) for _ in range(8)]:  # items do after a few
+            future.result()
+        origin = time.time()
+        futures = [pool.submit(_sleep_and_time, seconds, origin) for seconds in (2.0, 0.3, 0.3, 0.3)]
+        (long_worker, _, long_end), *shorts = [future.result() for future in futures]
+        assert {worker for worker, _, _ in shorts} != {long_worker}, shorts
+        shorts.sort(key=lambda row: row[1])
+        assert all(nxt[1] - prev[2] < 0.25 for prev, nxt in zip(shorts, shorts[1:])), shorts
+        assert shorts[-1][2] < long_end, (shorts, long_end)
+    finally:
+        pool.close()
+
+
 def _record_warm(path, ctx):
     import os
     import threading

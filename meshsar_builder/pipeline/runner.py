@@ -254,6 +254,15 @@ QUIET_DASK = {"distributed.worker.profile.enabled": False, "distributed.admin.ti
               "distributed.admin.system-monitor.interval": "5s"}
 
 
+# Dask's scheduler sends each worker up to worker-saturation x its threads items (1.1 by default: two for one
+# thread), and moves a queued one only by work stealing, which measured up to a second late or not at all: at the
+# end of a stage or register round one worker waited behind its second item while the other idled. At 1.0 the
+# scheduler keeps the items (once their task group outnumbers the threads twice, as the build's items all share
+# run_item's) and sends each worker the next when it finishes. A scheduler started by hand takes it from
+# DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0 (docs/data.md).
+SCHEDULE_WHEN_FREE = {"distributed.scheduler.worker-saturation": 1.0}
+
+
 class DaskPool:
     """Items as Dask tasks: a scheduler address (tcp://HOST:PORT) or `local:N` for a LocalCluster.
 
@@ -282,8 +291,9 @@ class DaskPool:
             # profiler (a stack sample of the item's thread every 10 ms, under the GIL), the event loops' 20 ms
             # tick and the 0.5 s system monitor. Measured on the pipeline bench's recipe, 2 workers (two runs
             # each): 86.0-86.9 s with Dask's defaults, 81.7-83.2 s without (a register fit 5.85 -> 5.55 s).
+            # And a worker gets its next item when it is free (SCHEDULE_WHEN_FREE), as a local pool's does.
             with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
-                                  **QUIET_DASK}):
+                                  **QUIET_DASK, **SCHEDULE_WHEN_FREE}):
                 self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                             dashboard_address=None, resources={"GPU": 1})
             self.client = Client(self.cluster)
