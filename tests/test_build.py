@@ -412,6 +412,26 @@ def test_a_local_dask_cluster_gives_a_worker_its_next_item_when_it_is_free():
         pool.close()
 
 
+def test_a_dask_scheduler_that_sends_items_ahead_is_named_when_the_build_connects():
+    """A scheduler started by hand keeps Dask's worker-saturation (1.1) unless told: the build warns with the
+    setting to use, and says nothing to one started with it."""
+    import warnings
+
+    import dask
+    from distributed import LocalCluster
+
+    from meshsar_builder.pipeline.runner import SCHEDULE_WHEN_FREE, DaskPool
+
+    for settings, warned in (({}, True), (SCHEDULE_WHEN_FREE, False)):  # a scheduler alone: no worker in this process
+        with dask.config.set(settings), LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                pool = DaskPool(cluster.scheduler_address)
+                pool.close()
+        named = [w for w in caught if "DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0" in str(w.message)]
+        assert bool(named) == warned, [str(w.message) for w in caught]
+
+
 def _record_warm(path, ctx):
     import os
     import threading

@@ -32,6 +32,7 @@ import sys
 import threading
 import time
 import traceback
+import warnings
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -300,6 +301,13 @@ class DaskPool:
         else:
             self.cluster = None
             self.client = Client(scheduler, timeout="30s")
+            # A lambda goes by value: the scheduler need not have this project installed.
+            saturation = self.client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.WORKER_SATURATION)
+            if saturation != SCHEDULE_WHEN_FREE["distributed.scheduler.worker-saturation"]:
+                warnings.warn(f"Dask scheduler {scheduler}: worker-saturation is {saturation}, so it sends workers "
+                              "items ahead and one can wait behind a long item while another worker idles; start "
+                              "the scheduler with DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0 (docs/data.md)",
+                              stacklevel=2)
         from meshsar_builder.pipeline.dask_worker import MainThreadImports
 
         self.client.register_plugin(MainThreadImports())
