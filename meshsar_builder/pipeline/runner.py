@@ -301,9 +301,11 @@ class DaskPool:
         else:
             self.cluster = None
             self.client = Client(scheduler, timeout="30s")
-            # A lambda goes by value: the scheduler need not have this project installed.
-            saturation = self.client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.WORKER_SATURATION)
-            if saturation != SCHEDULE_WHEN_FREE["distributed.scheduler.worker-saturation"]:
+            # A lambda goes by value: the scheduler need not have this project installed. Schedulers older than
+            # the setting (distributed < 2022.11) have no such attribute and are not judged.
+            saturation = self.client.run_on_scheduler(
+                lambda dask_scheduler: getattr(dask_scheduler, "WORKER_SATURATION", None))
+            if saturation not in (None, SCHEDULE_WHEN_FREE["distributed.scheduler.worker-saturation"]):
                 warnings.warn(f"Dask scheduler {scheduler}: worker-saturation is {saturation}, so it sends workers "
                               "items ahead and one can wait behind a long item while another worker idles; start "
                               "the scheduler with DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0 (docs/data.md)",
