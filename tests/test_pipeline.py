@@ -133,11 +133,15 @@ def test_sigkilled_dask_worker_is_retried_without_duplicates(smoke, tmp_path):
     import threading
     import time
 
+    import dask
     from distributed import Client, LocalCluster
+
+    from meshsar_builder.pipeline.runner import SCHEDULE_WHEN_FREE
 
     out, _ = smoke
     killed = tmp_path / "killed"
-    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as cluster, \
+    with dask.config.set(SCHEDULE_WHEN_FREE), \
+            LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as cluster, \
             Client(cluster) as client:
         pids = list(client.run(os.getpid).values())
         box = {}

@@ -276,9 +276,11 @@ def _refuse(ctx, dask_worker=None):  # Client.run hands the worker to a `dask_wo
 
 def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_path):
     """A cluster of a CPU worker and a GPU=1 worker: tagged items all run on the latter; checks run there."""
+    import dask
     from distributed import Scheduler, SpecCluster, Worker
 
-    from meshsar_builder.pipeline.runner import Context, DaskPool, Item, Results, Stage, check_stage, run_stage
+    from meshsar_builder.pipeline.runner import (
+        SCHEDULE_WHEN_FREE, Context, DaskPool, Item, Results, Stage, check_stage, run_stage)
 
     workers = {"cpu": {"cls": Worker, "options": {"nthreads": 1}},
                "gpu": {"cls": Worker, "options": {"nthreads": 1, "resources": {"GPU": 1}}}}
@@ -287,7 +289,7 @@ def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_
     items = lambda ctx, results: [Item(f"i{n}", ()) for n in range(8)]  # noqa: E731
     tagged = Stage(name="tagged", version=1, plan=items, run=_where, resources=lambda ctx: {"GPU": 1}, check=_refuse)
     needs_tpu = Stage(name="tpu", version=1, plan=items, run=_where, resources=lambda ctx: {"TPU": 1})
-    with SpecCluster(workers=workers, scheduler=scheduler) as cluster:
+    with dask.config.set(SCHEDULE_WHEN_FREE), SpecCluster(workers=workers, scheduler=scheduler) as cluster:
         pool = DaskPool(cluster.scheduler_address)
         try:
             results = Results()
