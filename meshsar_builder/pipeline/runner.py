@@ -292,7 +292,6 @@ class DaskPool:
             # profiler (a stack sample of the item's thread every 10 ms, under the GIL), the event loops' 20 ms
             # tick and the 0.5 s system monitor. Measured on the pipeline bench's recipe, 2 workers (two runs
             # each): 86.0-86.9 s with Dask's defaults, 81.7-83.2 s without (a register fit 5.85 -> 5.55 s).
-            # And a worker gets its next item when it is free (SCHEDULE_WHEN_FREE), as a local pool's does.
             with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
                                   **QUIET_DASK, **SCHEDULE_WHEN_FREE}):
                 self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
