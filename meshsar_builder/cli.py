@@ -75,17 +75,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
                                                   "failures")}))
         return 1 if result["failures"] else 0
     parts = list(PARTS) if args.part == "all" else [args.part]
+    from meshsar_builder.bench import result_name
+
     for part in run(parts, Path(args.out), args.device):
-        if part == "trainer":
-            from meshsar_builder.bench.trainer import result_name
-
-            print(f"{part}: {Path(args.out) / result_name(args.device)}")
-        elif part == "radar-throughput":
-            from meshsar_builder.bench.throughput import result_name
-
-            print(f"{part}: {Path(args.out) / result_name(args.device)}")
-        else:
-            print(f"{part}: {Path(args.out) / (part.replace('-', '_') + '.json')}")  # radar-loss -> radar_loss.json
+        print(f"{part}: {Path(args.out) / result_name(part, args.device)}")
     return 0
 
 
@@ -316,7 +309,8 @@ def parser() -> argparse.ArgumentParser:
                                      "paper-scale target (writes pipeline-<name>.json)")
     be.add_argument("--workers", type=int, default=2, help="with --recipe: local worker processes (default 2)")
     be.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
-                    help="trainer part: where steps are timed (cuda: fp32 and mixed precision); radar-throughput "
+                    help="radar part: cuda times the GPU radar against one core of the same run (radar-cuda.json); "
+                         "trainer part: where steps are timed (cuda: fp32 and mixed precision); radar-throughput "
                          "part: where the workers render (default cpu)")
     be.set_defaults(func=cmd_bench)
     return p

@@ -218,10 +218,27 @@ def test_radar_throughput_on_cuda_is_refused_before_any_worker_starts(tmp_path):
     assert not (tmp_path / "radar_throughput-cuda.json").exists()
 
 
-def test_bench_cli_names_the_throughput_file_of_its_device(tmp_path, monkeypatch, capsys):
+def test_bench_cli_names_the_file_of_its_device(tmp_path, monkeypatch, capsys):
     import meshsar_builder.bench.suite as suite
 
-    monkeypatch.setattr(suite, "bench_radar_throughput", lambda out, device: {"device": device})
-    for device, name in (("cpu", "radar_throughput.json"), ("cuda", "radar_throughput-cuda.json")):
-        assert main(["bench", "radar-throughput", "--device", device, "--out", str(tmp_path)]) == 0
-        assert capsys.readouterr().out.strip() == f"radar-throughput: {tmp_path / name}"
+    for part, stub in (("radar-throughput", "bench_radar_throughput"), ("radar", "bench_radar"),
+                       ("geometry", "bench_geometry")):
+        monkeypatch.setattr(suite, stub, lambda out, device="cpu": {"device": device})
+        stem = part.replace("-", "_")
+        for device, name in (("cpu", f"{stem}.json"), ("cuda", f"{stem}.json" if part == "geometry" else
+                                                                 f"{stem}-cuda.json")):
+            assert main(["bench", part, "--device", device, "--out", str(tmp_path)]) == 0
+            assert capsys.readouterr().out.strip() == f"{part}: {tmp_path / name}"
+
+
+def test_radar_bench_on_cuda_is_refused_before_the_cpu_half(tmp_path, monkeypatch):
+    torch = pytest.importorskip("torch")
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: the refusal is for machines without")
+    import meshsar_builder.bench.radar as BR
+    from meshsar_builder.pipeline.errors import MeshsarError
+
+    monkeypatch.setattr(BR.subprocess, "run", lambda *a, **k: pytest.fail("the benchmark's child started"))
+    with pytest.raises(MeshsarError, match="CUDA is not available"):
+        BR.run(tmp_path, np.zeros((3, 3)), np.array([[0, 1, 2]]), device="cuda")
+    assert not (tmp_path / "radar-cuda.json").exists()

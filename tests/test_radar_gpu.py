@@ -304,34 +304,41 @@ def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_
 
 
 def test_bench_gpu_row_is_skipped_with_a_reason_or_filled(monkeypatch):
-    """`meshsar bench radar`'s GPU row: a reason without CUDA; its numbers (here with "cuda" routed to the CPU)."""
+    """`meshsar bench radar --device cuda`'s row: a reason without CUDA; its numbers (here with "cuda" routed to
+    the CPU), the diffuse part in the view's seconds and the echo against the CPU's direct sum."""
     import trimesh
 
+    import meshsar_builder.radar.diffuse as RD
     from meshsar_builder.bench import radar as BR
+    from meshsar_builder.bench import radar_gpu as BG
 
     mesh = trimesh.creation.icosphere(2, radius=40.0)
     verts, faces = mesh.vertices, mesh.faces
     radar, images = RP.RadarParams(aperture=(6, 6), step_mm=20.0, n_samples=16, echo_decimation=(1, 1, 1),
                                    views=("anterior", "left")), ImageParams(size=16)
     intersector = RV.embree_intersector(verts, faces)
-    cpu_views = [BR.view_seconds(verts, faces, intersector, radar, images, view) for view in radar.views]
+    scatterers = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(0))
+    cpu_views = [BR.view_seconds(verts, faces, intersector, radar, images, view, scatterers) for view in radar.views]
     if not torch.cuda.is_available():
-        assert BR.gpu_row(verts, faces, radar, images, cpu_views) == {"skipped": NO_CUDA}
+        assert BG.gpu_row(verts, faces, radar, images, cpu_views, scatterers) == {"skipped": NO_CUDA}
         monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
         monkeypatch.setattr(RG, "check_device", lambda device: torch.device("cpu"))
         for name, value in (("get_device_name", "cpu"), ("reset_peak_memory_stats", None),
                             ("max_memory_allocated", 0)):
             monkeypatch.setattr(torch.cuda, name, lambda *args, value=value: value)
-    cpu_views[0]["seconds_echo_direct_scaled"] = 100.0  # as measure() records the direct sum's time
-    row = BR.gpu_row(verts, faces, radar, images, cpu_views)
+    cpu_views[0].update(BR.direct_check(verts, faces, radar, radar.views[0], cpu_views[0]))
+    cpu_views[0]["seconds_echo_direct_scaled"] = 100.0
+    row = BG.gpu_row(verts, faces, radar, images, cpu_views, scatterers)
     assert [v["view"] for v in row["views"]] == list(radar.views)
     for view in row["views"]:
         assert view["echo_relative_error"] < TOLERANCE and view["volume_relative_error"] < TOLERANCE
-        assert view["seconds_view"] > view["seconds_echo"] > 0 and view["speedup_view"] > 0
+        assert view["seconds_view"] > view["seconds_echo"] + view["seconds_diffuse"] and view["seconds_diffuse"] > 0
+        assert view["speedup_view"] > 0
         assert 0 <= view["intensity_max_difference"] < 1e-3 and 0.9 <= view["depth_within_one_slice"] <= 1
     first, second = row["views"]
     assert first["speedup_echo_direct"] == pytest.approx(100.0 / first["seconds_echo"])
-    assert second["speedup_echo_direct"] is None
+    assert first["echo_direct_relative_error"] < 1e-12  # the same model, summed directly on both
+    assert "speedup_echo_direct" not in second and "echo_direct_relative_error" not in second
     targets = row["targets"]
     assert targets["speedup_echo_direct"]["measured_min"] == first["speedup_echo_direct"]
     worst = max(first["intensity_max_difference"], second["intensity_max_difference"])

@@ -1,6 +1,6 @@
 """Radar benchmark: seconds per view on one core for both facet models and the diffuse part, production echo vs
-direct, Embree rays, the speckle statistics (bench.speckle, radar.appearance), and the GPU radar's seconds per
-view against that core (skipped, with the reason, without CUDA).
+direct, Embree rays, the speckle statistics (bench.speckle, radar.appearance); on a GPU (`--device cuda`), the
+GPU radar's seconds per view against one core instead (bench.radar_gpu, in run()'s child process).
 
 run() measures in a child process started with OMP/OPENBLAS/MKL/NUMBA thread counts
 of 1 (they are read once, when numpy and numba load) and pinned to one CPU with
@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from meshsar_builder.bench import result_name
 from meshsar_builder.pipeline.io import read_json, write_json
 
 TARGET_SPEEDUP = 100.0
@@ -30,11 +31,6 @@ TARGET_ERROR = 1e-4
 TARGET_VIEW_SECONDS = 0.5  # a whole view, the diffuse part included (issue 32 item 2)
 TARGET_PO_OVER_CENTROID = 2.5  # whole view, the facet integral against the centroid model
 TARGET_DIFFUSE_SECONDS = 0.15  # the diffuse part's echo per view (issue 29 item 5)
-# Issue 32's GPU budgets: the echo against the same direct sum on one core; the float32 channels
-# against the CPU's before storage.
-GPU_TARGET_SPEEDUP = 50.0
-GPU_TARGET_INTENSITY = 1e-5
-GPU_TARGET_DEPTH = 0.99
 DIRECT_ANTENNAS = 48  # the direct sum is timed on this many antennas and scaled to the aperture
 REPEATS = 3
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
@@ -102,86 +98,25 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
             "vis": vis}
 
 
-def gpu_row(verts, faces, radar, images, cpu_views: list[dict]) -> dict:
-    """The GPU row: per view, the echo and imaging on CUDA (radar/gpu.py) against one CPU core in this run.
+def direct_check(verts, faces, radar, view, cpu: dict) -> dict:
+    """The same model's direct sum on DIRECT_ANTENNAS antennas of a view, against the production echo there.
 
-    cpu_views : per view of radar.views, view_seconds' dict of the CPU path (its seconds,
-    `signal`, `volume`, `seen`, `vis`, and `seconds_echo_direct_scaled` where measure timed
-    the direct sum). Visibility stays on the CPU, so its seconds are the CPU's. Timings are
-    best of REPEATS after a warm-up call (the kernel's compile, the CUDA context, cuFFT
-    plans), which is timed on its own; results come back to the host, so each timing
-    includes the transfers and waits for the device. `targets` judges issue 32's GPU
-    budgets: the echo against the same direct sum on one core (GPU_TARGET_SPEEDUP), and the
-    view's float32 channels against the CPU's before storage (intensity within
-    GPU_TARGET_INTENSITY, depth within one range slice on GPU_TARGET_DEPTH of the pixels).
-    Skipped, with the reason, without torch or CUDA.
+    cpu : view_seconds' dict of that view. Returns the direct sum's one-core seconds scaled
+    to the whole aperture, the production echo's relative error on those antennas, and the
+    antennas' indices with the direct echo (DIRECT_ANTENNAS, N) (for the GPU row).
     """
-    try:
-        import torch
-    except ImportError as error:
-        return {"skipped": f"torch is not installed ({error})"}
-    if not torch.cuda.is_available():
-        return {"skipped": "no CUDA device: torch.cuda.is_available() is false"}
-    import meshsar_builder.radar.gpu as RG
+    import meshsar_builder.radar.echo as RE
     import meshsar_builder.radar.params as RP
-    from meshsar_builder.radar.imaging import range_slices, volume_images
 
-    freqs, (x_mm, y_mm) = RP.frequencies(radar), RP.aperture_axes(radar)
-    d_mm = range_slices(radar.z0_mm, images.fov_mm, freqs)
-    one_slice = (d_mm[1] - d_mm[0]) / (images.fov_mm / 2)  # in the depth channel's units
-    shape = (*radar.aperture, radar.n_samples)
-    start = time.perf_counter()
-    first = cpu_views[0]
-    RG.echo(verts[faces][first["seen"]][:8], first["vis"][first["seen"]][:8],
-            RP.aperture_positions(radar, radar.views[0])[:8], freqs, radar, device="cuda")
-    RG.view_volume(first["signal"], freqs, x_mm, y_mm, radar.z0_mm, images, device="cuda")
-    warm_up = time.perf_counter() - start
-    torch.cuda.reset_peak_memory_stats()
-    views = []
-    for view, cpu in zip(radar.views, cpu_views):
-        seen, vis = cpu["seen"], cpu["vis"]
-        positions = RP.aperture_positions(radar, view)
-        t_echo, signal = _best(lambda: RG.echo(verts[faces][seen], vis[seen], positions, freqs, radar, device="cuda"))
-        signal = signal.reshape(shape)
-        t_img, volume = _best(lambda: RG.view_volume(signal, freqs, x_mm, y_mm, radar.z0_mm, images, device="cuda"))
-        seconds_view = cpu["seconds_visibility"] + t_echo + 2 * t_img
-        mine, theirs = (dict(zip(images.channels, volume_images(v, freqs, radar.z0_mm, images)))
-                        for v in (volume, cpu["volume"]))
-        views.append({
-            "view": view, "seconds_echo": t_echo, "seconds_imaging": 2 * t_img, "seconds_view": seconds_view,
-            "cpu_seconds_view": cpu["seconds_view"], "speedup_view": cpu["seconds_view"] / seconds_view,
-            "speedup_echo": cpu["seconds_echo"] / t_echo,
-            "speedup_echo_direct": cpu["seconds_echo_direct_scaled"] / t_echo
-            if "seconds_echo_direct_scaled" in cpu else None,
-            "echo_relative_error": float(np.linalg.norm(signal - cpu["signal"]) / np.linalg.norm(cpu["signal"])),
-            "volume_relative_error": float(np.linalg.norm(volume - cpu["volume"]) / np.linalg.norm(cpu["volume"])),
-            **({"intensity_max_difference": float(np.abs(mine["intensity"] - theirs["intensity"]).max()),
-                "intensity_within_target": float(np.mean(np.abs(mine["intensity"] - theirs["intensity"])
-                                                         <= GPU_TARGET_INTENSITY))} if "intensity" in mine else {}),
-            **({"depth_within_one_slice": float(np.mean(np.abs(mine["depth"] - theirs["depth"]) <= one_slice))}
-               if "depth" in mine else {}),
-        })
-    return {"device": torch.cuda.get_device_name(0), "torch": torch.__version__, "facet": radar.facet,
-            "warm_up_seconds": warm_up, "peak_memory_bytes": int(torch.cuda.max_memory_allocated()),
-            "imaging_chunk_bytes": RG.DEVICE_CHUNK_BYTES, "views": views, "targets": gpu_targets(views)}
-
-
-def gpu_targets(views: list[dict]) -> dict:
-    """Issue 32's GPU budgets over the gpu row's views, each with a `met` flag (left out where not measured)."""
-    targets = {}
-    speedups = [v["speedup_echo_direct"] for v in views if v.get("speedup_echo_direct") is not None]
-    if speedups:
-        targets["speedup_echo_direct"] = {"target": GPU_TARGET_SPEEDUP, "measured_min": min(speedups),
-                                          "met": min(speedups) >= GPU_TARGET_SPEEDUP}
-    if all("intensity_max_difference" in v for v in views):
-        worst = max(v["intensity_max_difference"] for v in views)
-        targets["intensity_max_difference"] = {"target": GPU_TARGET_INTENSITY, "measured_max": worst,
-                                               "met": worst <= GPU_TARGET_INTENSITY}
-    if all("depth_within_one_slice" in v for v in views):
-        least = min(v["depth_within_one_slice"] for v in views)
-        targets["depth_within_one_slice"] = {"target": GPU_TARGET_DEPTH, "measured_min": least,
-                                             "met": least >= GPU_TARGET_DEPTH}
-    return targets
+    positions, freqs = RP.aperture_positions(radar, view), RP.frequencies(radar)
+    subset = np.linspace(0, len(positions) - 1, DIRECT_ANTENNAS).round().astype(int)
+    seen, vis = cpu["seen"], cpu["vis"]
+    t_direct, direct = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions[subset], freqs, radar,
+                                             method="direct"))
+    production = cpu["signal"].reshape(len(positions), -1)[subset]
+    return {"seconds_echo_direct_scaled": t_direct * len(positions) / len(subset),
+            "echo_relative_error": float(np.linalg.norm(production - direct) / np.linalg.norm(direct)),
+            "direct_antennas": subset, "direct": direct}
 
 
 # Floating-point operations per antenna-scatterer pair of the production kernel
@@ -435,22 +370,17 @@ def measure(verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.nda
     _, normals, _ = RV.facet_geometry(verts, faces)
     intersector = RV.embree_intersector(verts, faces)
     scatterers = RD.draw_scatterers(verts, faces, radar.diffuse_density_per_mm2, np.random.default_rng(0))
-    views, ray_count, ray_seconds, cpu_views = [], 0, 0.0, []
+    views, ray_count, ray_seconds = [], 0, 0.0
     for view in radar.views:
         po = view_seconds(verts, faces, intersector, radar, images, view, scatterers)
         point = view_seconds(verts, faces, intersector, centroid, images, view)
-        cpu_views.append(dict(po))  # the GPU row compares with these, arrays included
+        check = direct_check(verts, faces, radar, view, po)
         seen, vis = po.pop("seen"), po.pop("vis")
-        po.pop("volume")
+        po.pop("volume"), po.pop("signal")
         positions = RP.aperture_positions(radar, view)
-        subset = np.linspace(0, len(positions) - 1, DIRECT_ANTENNAS).round().astype(int)
-        tri = verts[faces][seen]
-        t_direct, direct = _best(lambda: RE.echo(tri, vis[seen], positions[subset], freqs, radar, method="direct"))
-        production = po.pop("signal").reshape(len(positions), -1)[subset]
-        error = float(np.linalg.norm(production - direct) / np.linalg.norm(direct))
-        t_series, _ = _best(lambda: RE.echo(tri, vis[seen], positions, freqs, radar, method="chebyshev"))
-        direct_scaled = t_direct * len(positions) / len(subset)
-        cpu_views[-1]["seconds_echo_direct_scaled"] = direct_scaled  # the GPU row's same-model reference
+        t_series, _ = _best(lambda: RE.echo(verts[faces][seen], vis[seen], positions, freqs, radar,
+                                            method="chebyshev"))
+        direct_scaled, error = check["seconds_echo_direct_scaled"], check["echo_relative_error"]
         # Embree alone: the same rays as the visibility pass, without the numpy around them.
         probes = RP.probe_points(radar, view)
         centres = RV.facet_geometry(verts, faces)[0]
@@ -475,7 +405,7 @@ def measure(verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.nda
             "factorised_speedup": t_series / po["seconds_echo"],
             "echo_speedup": direct_scaled / po["seconds_echo"],
             "echo_relative_error": error,
-            "direct_antennas": len(subset),
+            "direct_antennas": DIRECT_ANTENNAS,
         })
     worst_view = max(v["seconds_view"] for v in views)
     worst_diffuse = max(v["seconds_diffuse"] for v in views)
@@ -493,7 +423,6 @@ def measure(verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.nda
         "echo_first_call_seconds": first_call,
         "views": views,
         "embree_rays_per_second": ray_count / ray_seconds,
-        "gpu": gpu_row(verts, faces, radar, images, cpu_views),
         "machine": machine_rates(),
         "roofline": roofline(verts, faces, radar, radar.views[0], scatterers),
         "factorised": factorised_profile(verts, faces, radar, radar.views[0]),
@@ -513,23 +442,32 @@ def measure(verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.nda
     }
 
 
-def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
-    """Benchmark the radar on a mesh (verts (n, 3) mm heart frame, faces (m, 3)); writes out_dir/'radar.json'.
+def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndarray, np.ndarray] | None = None,
+        device: str = "cpu") -> dict:
+    """Benchmark the radar on a mesh (verts (n, 3) mm heart frame, faces (m, 3)); writes out_dir/'radar.json', or
+    on a GPU (device "cuda" or "cuda:N") the GPU row alone to 'radar-cuda.json' (bench.radar_gpu).
 
     fine: (verts, faces) of a finer surface of the same heart, for the scaling row.
     """
+    if device != "cpu":
+        from meshsar_builder.radar.gpu import check_device
+
+        check_device(device)  # a missing torch or GPU is named before the CPU half's minutes
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    mesh_path, result_path = out_dir / "radar-bench-mesh.npz", out_dir / "radar.json"
+    mesh_path, result_path = out_dir / "radar-bench-mesh.npz", out_dir / result_name("radar", device)
     extra = {} if fine is None else {"fine_verts": np.asarray(fine[0], dtype=np.float64),
                                      "fine_faces": np.asarray(fine[1], dtype=np.int64)}
     np.savez(mesh_path, verts=np.asarray(verts, dtype=np.float64), faces=np.asarray(faces, dtype=np.int64), **extra)
     env = {**os.environ, **{name: "1" for name in THREAD_VARIABLES}}
+    module = __name__ if device == "cpu" else "meshsar_builder.bench.radar_gpu"
     try:
-        subprocess.run([sys.executable, "-m", __name__, str(mesh_path), str(result_path)], env=env, check=True)
+        subprocess.run([sys.executable, "-m", module, str(mesh_path), str(result_path), device], env=env, check=True)
     finally:
         mesh_path.unlink(missing_ok=True)
     result = read_json(result_path)
+    if device != "cpu":
+        return result
     with tempfile.TemporaryDirectory() as cache:
         compile_run = subprocess.run([sys.executable, "-m", __name__, "--first-echo"], check=True, text=True,
                                      env={**env, "NUMBA_CACHE_DIR": cache}, capture_output=True)
@@ -538,9 +476,14 @@ def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray, fine: tuple[np.ndar
     return result
 
 
-def _main(mesh_path: str, result_path: str | None = None) -> None:
+def pin_one_core() -> None:
+    """Run this process on one CPU (the benchmark's child; its thread counts are set by run())."""
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+
+
+def _main(mesh_path: str, result_path: str | None = None, device: str = "cpu") -> None:
+    pin_one_core()
     if mesh_path == "--first-echo":
         print(first_echo_seconds())
         return

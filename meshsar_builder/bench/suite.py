@@ -3,8 +3,8 @@
 Parts:
 - radar: seconds per view (visibility, echo, imaging) on one core for a demo
   mesh, the production echo's speed-up over the direct sum in the same run,
-  Embree rays per second, and the GPU radar's seconds per view against that
-  core (a `gpu` row, skipped with the reason without CUDA) (bench_radar);
+  Embree rays per second (bench_radar); with `--device cuda`, the GPU radar's
+  seconds per view against one core of the same run instead (bench/radar_gpu.py);
 - geometry: seconds per subject for meshing, remeshing and registration (all
   groupwise rounds, and each round on its own), and ms per SSM sample, at the
   demo recipe's settings on demo phantoms;
@@ -84,10 +84,12 @@ def demo_mesh() -> tuple[np.ndarray, np.ndarray]:
     return verts - (verts.min(axis=0) + verts.max(axis=0)) / 2, faces
 
 
-def bench_radar(out: Path) -> dict:
+def bench_radar(out: Path, device: str = "cpu") -> dict:
     from meshsar_builder.bench.radar import run
     from meshsar_builder.geometry.remesh import RemeshParams, remesh
 
+    if device != "cpu":
+        return run(out, *demo_mesh(), device=device)
     surface = demo_subject(0)  # remeshed at half the demo's edge: the scaling row's finest mesh
     return run(out, *demo_mesh(), fine=remesh(surface.verts, surface.faces, RemeshParams(edge_mm=1.25)))
 
@@ -388,10 +390,10 @@ def bench_tracking(out: Path) -> dict:
 
 
 def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") -> dict:
-    """Run the parts; `device` is where the trainer part trains (cpu, or cuda: fp32 and mixed precision) and where
-    the radar-throughput part renders."""
+    """Run the parts; `device` is where the radar part's GPU row runs (cuda: against one core, alone), where the
+    trainer part trains (cpu, or cuda: fp32 and mixed precision) and where the radar-throughput part renders."""
     out.mkdir(parents=True, exist_ok=True)
-    benches = {"radar": bench_radar, "geometry": bench_geometry, "pipeline": bench_pipeline,
+    benches = {"radar": lambda folder: bench_radar(folder, device), "geometry": bench_geometry, "pipeline": bench_pipeline,
                "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss,
                "speckle": bench_speckle, "inference": bench_inference, "tracking": bench_tracking,
                "radar-throughput": lambda folder: bench_radar_throughput(folder, device)}

@@ -19,15 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from meshsar_builder.bench import result_name
 from meshsar_builder.bench.radar import THREAD_VARIABLES
 from meshsar_builder.pipeline.io import write_json
 
 SAMPLES = 4
-
-
-def result_name(device: str) -> str:
-    """The JSON's file name for a device: radar_throughput.json on the CPU, radar_throughput-cuda.json on a GPU."""
-    return "radar_throughput.json" if device == "cpu" else "radar_throughput-cuda.json"
 
 
 def worker_counts(cores: int) -> list[int]:
@@ -80,7 +76,7 @@ def measure(verts: np.ndarray, faces: np.ndarray, processes: int, samples: int =
 
 def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray, device: str = "cpu", counts: list[int] | None = None,
         samples: int = SAMPLES) -> dict:
-    """Each worker count's samples a second on `device`, into out_dir / result_name(device)."""
+    """Each worker count's samples a second on `device`, into out_dir / result_name("radar-throughput", device)."""
     from meshsar_builder.radar.render import view_functions
 
     view_functions(device)  # a missing torch or GPU is named before any worker starts
@@ -92,5 +88,5 @@ def run(out_dir: Path, verts: np.ndarray, faces: np.ndarray, device: str = "cpu"
 
         result["device_name"] = torch.cuda.get_device_name(torch.device(device))
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_json(out_dir / result_name(device), result)
+    write_json(out_dir / result_name("radar-throughput", device), result)
     return result

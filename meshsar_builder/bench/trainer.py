@@ -24,6 +24,7 @@ import numpy as np
 import torch
 import trimesh
 
+from meshsar_builder.bench import result_name
 from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.io import write_json
 from meshsar_builder.radar.differentiable import echo_torch
@@ -158,11 +159,6 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def result_name(device: str) -> str:
-    """The JSON file a run on `device` writes: trainer.json on the CPU, trainer-cuda.json on a GPU."""
-    return "trainer.json" if torch.device(device).type == "cpu" else "trainer-cuda.json"
-
-
 def run(out_dir: str | Path, device: str = "cpu") -> dict:
     """Time the default and paper configs on `device`, write out_dir/trainer.json (trainer-cuda.json for a GPU),
     return its contents. On CUDA each is timed in fp32 and with mixed precision (amp)."""
@@ -196,5 +192,5 @@ def run(out_dir: str | Path, device: str = "cpu") -> dict:
     ratio = result["default"]["radar_step_ratio"]
     result["targets"] = {"radar_step_ratio": {"target": TARGET_RADAR_STEP_RATIO, "measured": ratio,
                                               "met": ratio <= TARGET_RADAR_STEP_RATIO, "config": "default"}}
-    write_json(Path(out_dir) / result_name(str(device)), result)
+    write_json(Path(out_dir) / result_name("trainer", str(device)), result)
     return result
