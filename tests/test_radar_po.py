@@ -117,11 +117,11 @@ def test_production_echo_matches_the_sub_triangle_reference():
         sub, parent = subdivide(tri, n)
         sub_centres, _, sub_areas = RV.triangle_geometry(sub)
         out = np.zeros((len(positions), len(freqs)), dtype=complex)
+        path = np.einsum("mkc,kc->mk", toward[:, parent], sub_centres - centres[parent])  # (M, S) mm
         for i, f in enumerate(freqs):
             k = 2 * np.pi * f / (1e3 * RP.SPEED_OF_LIGHT_M_PER_S)
-            phase = 2 * k * np.einsum("mkc,kc->mk", toward[:, parent], sub_centres - centres[parent])  # (M, S)
-            integral = np.zeros_like(amplitude, dtype=complex)
-            np.add.at(integral.T, parent, (sub_areas * np.exp(1j * phase)).T)
+            # Each parent's n^2 sub-triangles are contiguous (subdivide): its integral is their block's sum.
+            integral = (sub_areas * np.exp(2j * k * path)).reshape(len(positions), len(tri), -1).sum(axis=2)  # (M, K)
             out[:, i] = np.sum(amplitude * integral * np.exp(2j * np.pi * (f * tau - 0.5 * radar.slope_hz_per_s
                                                                           * tau**2)), axis=1)
         return out
