@@ -98,6 +98,11 @@ def view_seconds(verts, faces, intersector, radar, images, view, scatterers=None
             "vis": vis}
 
 
+def relative(got: np.ndarray, expected: np.ndarray) -> float:
+    """Relative L2 error of got against expected."""
+    return float(np.linalg.norm(got - expected) / np.linalg.norm(expected))
+
+
 def direct_check(verts, faces, radar, view, cpu: dict) -> dict:
     """The same model's direct sum on DIRECT_ANTENNAS antennas of a view, against the production echo there.
 
@@ -115,7 +120,7 @@ def direct_check(verts, faces, radar, view, cpu: dict) -> dict:
                                              method="direct"))
     production = cpu["signal"].reshape(len(positions), -1)[subset]
     return {"seconds_echo_direct_scaled": t_direct * len(positions) / len(subset),
-            "echo_relative_error": float(np.linalg.norm(production - direct) / np.linalg.norm(direct)),
+            "echo_relative_error": relative(production, direct),
             "direct_antennas": subset, "direct": direct}
 
 

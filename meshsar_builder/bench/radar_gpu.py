@@ -16,16 +16,20 @@ import time
 
 import numpy as np
 
-from meshsar_builder.bench.radar import REPEATS, THREAD_VARIABLES, _best, direct_check, pin_one_core, view_seconds
+from meshsar_builder.bench.radar import (
+    REPEATS,
+    THREAD_VARIABLES,
+    _best,
+    direct_check,
+    pin_one_core,
+    relative,
+    view_seconds,
+)
 from meshsar_builder.pipeline.io import write_json
 
 GPU_TARGET_SPEEDUP = 50.0
 GPU_TARGET_INTENSITY = 1e-5
 GPU_TARGET_DEPTH = 0.99
-
-
-def relative(got: np.ndarray, expected: np.ndarray) -> float:
-    return float(np.linalg.norm(got - expected) / np.linalg.norm(expected))
 
 
 def gpu_row(verts, faces, radar, images, cpu_views: list[dict], scatterers=None, device: str = "cuda") -> dict:
