@@ -70,15 +70,16 @@ def cmd_bench(args: argparse.Namespace) -> int:
             return 2
         from meshsar_builder.bench.suite import bench_recipe
 
-        result = bench_recipe(Path(args.out), Path(args.recipe), args.workers)
+        result = bench_recipe(Path(args.out), Path(args.recipe), args.workers, args.device)
         print(json.dumps({k: result[k] for k in ("wall_seconds", "target_met", "samples", "samples_per_minute",
                                                   "failures")}))
         return 1 if result["failures"] else 0
     parts = list(PARTS) if args.part == "all" else [args.part]
     from meshsar_builder.bench import result_name
 
-    for part in run(parts, Path(args.out), args.device):
-        print(f"{part}: {Path(args.out) / result_name(part, args.device)}")
+    device = args.device or "cpu"
+    for part in run(parts, Path(args.out), device):
+        print(f"{part}: {Path(args.out) / result_name(part, device)}")
     return 0
 
 
@@ -308,8 +309,9 @@ def parser() -> argparse.ArgumentParser:
     be.add_argument("--recipe", help="pipeline only: build this recipe from scratch and time it against the "
                                      "paper-scale target (writes pipeline-<name>.json)")
     be.add_argument("--workers", type=int, default=2, help="with --recipe: local worker processes (default 2)")
-    be.add_argument("--device", default="cpu", choices=["cpu", "cuda"],
+    be.add_argument("--device", choices=["cpu", "cuda"],
                     help="radar part: cuda times the GPU radar against one core of the same run (radar-cuda.json); "
+                         "pipeline --recipe: the build's [radar] device (default: the recipe's); "
                          "trainer part: where steps are timed (cuda: fp32 and mixed precision); radar-throughput "
                          "part: where the workers render (default cpu)")
     be.set_defaults(func=cmd_bench)

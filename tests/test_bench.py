@@ -67,6 +67,36 @@ def test_scaling_efficiency_is_judged_per_backend_with_both_runs():
     assert scaling({"local-1": {"wall_seconds": 1.0}}) == {}  # no 2-worker run: nothing judged
 
 
+def test_recipe_bench_builds_with_the_radar_device_it_is_given(tmp_path, monkeypatch, capsys):
+    """--device sets the build's [radar] device (else the recipe's), names a GPU build's folder and JSON apart from
+    the CPU's, and picks the paper-scale budget: 30 min on the 2-core machine, 5 with the radar on a GPU."""
+    import subprocess
+
+    import meshsar_builder.bench.suite as suite
+
+    builds = []
+
+    def stopped(argv, **kwargs):  # the build's process: its arguments, then a failure, so nothing is built
+        builds.append(argv)
+        return subprocess.CompletedProcess(argv, 1, "", "stopped by the test")
+
+    monkeypatch.setattr(suite.subprocess, "run", stopped)
+    for device, folder, radar in ((None, "pipeline-smoke", "cpu"), ("cuda", "pipeline-smoke-cuda", "cuda")):
+        (tmp_path / folder / "stale").mkdir(parents=True)  # each bench starts its own build from scratch
+        with pytest.raises(RuntimeError, match="stopped by the test"):
+            suite.bench_recipe(tmp_path, MANIFESTS / "smoke.toml", 16, device)
+        assert builds[-1][-3:] == [str(tmp_path / folder), "16", radar] and not (tmp_path / folder).exists()
+        (tmp_path / "pipeline-smoke" / "kept").mkdir(parents=True, exist_ok=True)
+    assert (tmp_path / "pipeline-smoke" / "kept").exists()  # the GPU build left the CPU build's folder alone
+    assert (suite.paper_scale_target("cpu"), suite.paper_scale_target("cuda:1")) == (1800, 300)
+    seen = {}
+    monkeypatch.setattr(suite, "bench_recipe", lambda out, recipe, workers, device: seen.update(device=device) or {
+        "wall_seconds": 1.0, "target_met": None, "samples": 1, "samples_per_minute": 60.0, "failures": []})
+    for flags, device in (([], None), (["--device", "cuda"], "cuda")):
+        assert main(["bench", "pipeline", "--recipe", str(MANIFESTS / "smoke.toml"), *flags]) == 0
+        assert seen["device"] == device
+
+
 def test_recipe_goes_with_the_pipeline_part(capsys):
     assert main(["bench", "radar", "--recipe", str(MANIFESTS / "smoke.toml")]) == 2
     assert "--recipe goes with the pipeline part" in capsys.readouterr().err
