@@ -92,7 +92,8 @@ def gpu_row(verts, faces, radar, images, cpu_views: list[dict], scatterers=None,
                "volume_relative_error": relative(volume, cpu["volume"])}
         if "seconds_echo_direct_scaled" in cpu:  # against the same model, summed directly on the CPU
             row["speedup_echo_direct"] = cpu["seconds_echo_direct_scaled"] / t_echo
-            row["echo_direct_relative_error"] = relative(signal.reshape(-1, len(freqs))[cpu["direct_antennas"]], cpu["direct"])
+            on_subset = signal.reshape(-1, len(freqs))[cpu["direct_antennas"]]
+            row["echo_direct_relative_error"] = relative(on_subset, cpu["direct"])
         if "intensity" in mine:
             gap = np.abs(mine["intensity"] - theirs["intensity"])
             row["intensity_max_difference"] = float(gap.max())

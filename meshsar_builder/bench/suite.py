@@ -407,8 +407,9 @@ def run(parts: list[str], out: Path = Path("build/bench"), device: str = "cpu") 
     """Run the parts; `device` is where the radar part's GPU row runs (cuda: against one core, alone), where the
     trainer part trains (cpu, or cuda: fp32 and mixed precision) and where the radar-throughput part renders."""
     out.mkdir(parents=True, exist_ok=True)
-    benches = {"radar": lambda folder: bench_radar(folder, device), "geometry": bench_geometry, "pipeline": bench_pipeline,
-               "trainer": lambda folder: bench_trainer(folder, device), "radar-loss": bench_radar_loss,
+    benches = {"radar": lambda folder: bench_radar(folder, device), "geometry": bench_geometry,
+               "pipeline": bench_pipeline, "trainer": lambda folder: bench_trainer(folder, device),
+               "radar-loss": bench_radar_loss,
                "speckle": bench_speckle, "inference": bench_inference, "tracking": bench_tracking,
                "radar-throughput": lambda folder: bench_radar_throughput(folder, device)}
     return {part: benches[part](out) for part in parts}
