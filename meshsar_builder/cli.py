@@ -68,8 +68,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         if args.part != "pipeline":
             print("error: --recipe goes with the pipeline part (meshsar bench pipeline --recipe R)", file=sys.stderr)
             return 2
-        from meshsar_builder.bench.suite import bench_recipe
+        from meshsar_builder.bench.suite import bench_pipeline, bench_recipe
 
+        if args.scaling:
+            print(json.dumps(bench_pipeline(Path(args.out), recipe=Path(args.recipe))["scaling"]))
+            return 0
         result = bench_recipe(Path(args.out), Path(args.recipe), args.workers, args.device)
         print(json.dumps({k: result[k] for k in ("wall_seconds", "target_met", "samples", "samples_per_minute",
                                                   "failures")}))
@@ -309,6 +312,9 @@ def parser() -> argparse.ArgumentParser:
     be.add_argument("--recipe", help="pipeline only: build this recipe from scratch and time it against the "
                                      "paper-scale target (writes pipeline-<name>.json)")
     be.add_argument("--workers", type=int, default=2, help="with --recipe: local worker processes (default 2)")
+    be.add_argument("--scaling", action="store_true",
+                    help="with --recipe: its 1 -> 2 worker scaling on the local pool and Dask, four builds "
+                         "(writes pipeline-scaling-<name>.json), instead of one build")
     be.add_argument("--device", choices=["cpu", "cuda"],
                     help="radar part: cuda times the GPU radar against one core of the same run (radar-cuda.json); "
                          "pipeline --recipe: the build's [radar] device (default: the recipe's); "

@@ -4,6 +4,7 @@ trainer bench's step timing."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -95,6 +96,37 @@ def test_recipe_bench_builds_with_the_radar_device_it_is_given(tmp_path, monkeyp
     for flags, device in (([], None), (["--device", "cuda"], "cuda")):
         assert main(["bench", "pipeline", "--recipe", str(MANIFESTS / "smoke.toml"), *flags]) == 0
         assert seen["device"] == device
+
+
+def test_scaling_bench_builds_a_given_recipe_where_it_is_four_times(tmp_path, monkeypatch, capsys):
+    """--recipe R --scaling: R's 1 -> 2 worker scaling on both backends, R read in place (its relative source paths
+    are the user's), pipeline-scaling-<name>.json; the default recipe's file is left alone."""
+    import subprocess
+
+    import meshsar_builder.bench.suite as suite
+
+    builds = []
+
+    def build(argv, **kwargs):  # a stand-in for the build: its index, a stage sidecar and its peak RSS
+        out = Path(argv[argv.index("--out") + 1])
+        (out / "remesh").mkdir(parents=True)
+        (out / "index.json").write_text('{"n_samples": 4}')
+        (out / "remesh" / "a.json").write_text('{"seconds": 1.5}')
+        builds.append(argv)
+        return subprocess.CompletedProcess(argv, 0, "2048\n", "")
+
+    monkeypatch.setattr(suite.subprocess, "run", build)
+    recipe = MANIFESTS / "smoke.toml"
+    assert main(["bench", "pipeline", "--recipe", str(recipe), "--scaling", "--out", str(tmp_path)]) == 0
+    assert [argv[argv.index("build") + 1] for argv in builds] == [str(recipe)] * 4
+    assert [argv[argv.index("--out") + 2:] for argv in builds] == [list(args) for _, args in suite.PIPELINE_RUNS]
+    result = read_json(tmp_path / "pipeline-scaling-smoke.json")
+    assert json.loads(capsys.readouterr().out) == result["scaling"] and result["recipe"] == str(recipe)
+    runs = result["runs"]
+    assert result["scaling"]["dask"]["speedup_2_workers"] == runs["dask-1"]["wall_seconds"] / runs["dask-2"][
+        "wall_seconds"]
+    assert result["runs"]["local-1"]["stages"]["remesh"] == {"items": 1, "seconds_per_item": 1.5}
+    assert not (tmp_path / "pipeline.json").exists()
 
 
 def test_recipe_goes_with_the_pipeline_part(capsys):

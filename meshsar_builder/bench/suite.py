@@ -193,8 +193,9 @@ PIPELINE_RUNS = (
 )
 
 
-def bench_pipeline(out: Path, runs: tuple = PIPELINE_RUNS) -> dict:
-    """The demo's settings on 4 whole-heart subjects, 8 SSM samples and 4 frames, local pool and Dask.
+def bench_pipeline(out: Path, runs: tuple = PIPELINE_RUNS, recipe: Path | None = None) -> dict:
+    """The demo's settings on 4 whole-heart subjects, 8 SSM samples and 4 frames (or `recipe`), local pool and
+    Dask, 1 and 2 workers: pipeline.json (pipeline-scaling-<recipe name>.json for a recipe).
 
     Each build runs from scratch as its own `meshsar build` process; peak
     memory is the largest resident set among that process and its workers.
@@ -202,8 +203,12 @@ def bench_pipeline(out: Path, runs: tuple = PIPELINE_RUNS) -> dict:
     """
     measured = {}
     with tempfile.TemporaryDirectory() as tmp:
-        recipe = Path(tmp) / "bench.toml"
-        recipe.write_text(PIPELINE_RECIPE)
+        if recipe is None:
+            recipe = Path(tmp) / "bench.toml"
+            recipe.write_text(PIPELINE_RECIPE)
+            described, result_file = "demo settings; " + " ".join(PIPELINE_RECIPE.split()), "pipeline.json"
+        else:  # read where it is: its sources' relative paths are the user's
+            described, result_file = str(recipe), f"pipeline-scaling-{load(recipe).name}.json"
         for name, args in runs:
             build_dir = Path(tmp) / name
             build = [sys.executable, "-m", "meshsar_builder.cli", "build", str(recipe), "--out", str(build_dir), *args]
@@ -221,9 +226,8 @@ def bench_pipeline(out: Path, runs: tuple = PIPELINE_RUNS) -> dict:
             measured[name] = {"wall_seconds": wall, "samples": samples, "seconds_per_sample": wall / samples,
                               "samples_per_minute": 60 * samples / wall,
                               "peak_rss_mb_largest_process": int(peak_kb) / 1024, "stages": per_stage}
-    result = {"recipe": "demo settings; " + " ".join(PIPELINE_RECIPE.split()), "runs": measured,
-              "scaling": scaling(measured)}
-    write_json(out / "pipeline.json", result)
+    result = {"recipe": described, "runs": measured, "scaling": scaling(measured)}
+    write_json(out / result_file, result)
     return result
 
 
