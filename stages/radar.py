@@ -182,4 +182,7 @@ def warm(ctx: Context) -> None:
 # v11's on the demo heart), and the images' padded grid is 165 x 165 (was 162), so that inverse FFTs land on the
 # pixels: the complex volumes grow by (165 / 162)^2 (their sums have more terms; every channel is a ratio) and the
 # demo heart's intensity channels move by at most 0.003, its depth channels on 0.04 % of the pixels.
-STAGE = Stage(name=NAME, version=12, plan=plan, run=run, resources=resources, check=check, warm=warm)
+# Version 13: the factorised echo checks each cluster's interpolation of the facets and refines its grid where it
+# has not converged (silhouettes of bumpy shapes were up to 1.2e-4 off the direct sum): the demo heart's echo
+# keeps its bytes; a shape with such clusters moves within the budget.
+STAGE = Stage(name=NAME, version=13, plan=plan, run=run, resources=resources, check=check, warm=warm)

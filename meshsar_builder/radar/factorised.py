@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 import meshsar_builder.radar.series as per_pair  # looked up at call time (the bench times its series)
 from meshsar_builder.pipeline.errors import MeshsarError
 from meshsar_builder.radar.series import _cos_sin
+from meshsar_builder.radar.imaging import phasor
 from meshsar_builder.radar.jit import KERNEL_OPTIONS, NUMBA_MISSING, njit
 from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, Aperture
 
@@ -65,6 +67,32 @@ FREQUENCY_TOLERANCE = 1e-5
 # takes 5-10 ms a view less than 1e-7. Facets keep CHEBYSHEV_TOLERANCE: their corner weights amplify the series'
 # error up to CORNER_GAIN_LIMIT times.
 POINT_SERIES_TOLERANCE = 1e-5
+# The grid bound above is for a smooth remainder. Where a facet turns away within the aperture, its lobe's kink
+# (kappa cos theta at 0) converges slowly; on a cluster of the silhouette, where every facet turns away, the
+# bound's grid left 1-4 % of the cluster's own echo (0.1-1.6 % of the echo's norm) and a sphere with 12 bumps at
+# 1.0-1.2e-4 of the direct sum, beyond DESIGN's 1e-4. So each cluster's facet sums are read as Chebyshev
+# coefficients over its grid at CHECK_FREQUENCIES frequencies (no extra sums) and the clusters whose last
+# TAIL_COEFFICIENTS hold the most energy are refined, REFINE_FACTOR times finer, until the tails left are within
+# SPATIAL_TOLERANCE of the clusters' energy; after REFINE_ROUNDS rounds, or where a grid would not be
+# FACTORISED_GAIN times smaller than the aperture, a cluster is summed on the aperture itself. The tails
+# underestimate the error 1.6-3x (the kink's coefficients decay like l^-2): SPATIAL_TOLERANCE keeps the
+# measured errors below 1e-4 with that margin (docs/radar.md).
+CHECK_FREQUENCIES = 4
+TAIL_COEFFICIENTS = 2
+SPATIAL_TOLERANCE = 5e-5
+REFINE_FACTOR = 1.4
+REFINE_ROUNDS = 2
+
+
+class _Group(NamedTuple):
+    """Items summed on one grid: a cluster's Chebyshev grid about its centre (radius rho, mm), or the aperture
+    itself (centre None: no interpolation)."""
+
+    items: np.ndarray  # (K,) int, into the parts' items concatenated
+    node_x: np.ndarray  # (qx,) float mm
+    node_y: np.ndarray  # (qy,) float mm
+    centre: np.ndarray | None = None  # (3,) float mm
+    rho: float = 0.0
 
 
 def _chebyshev_nodes(axis: np.ndarray, count: int) -> np.ndarray:
@@ -261,11 +289,13 @@ def echo_factorised(parts, grid, freqs, last_on=None):
     (offsets (K, 3, 3)) or point scatterers (offsets None), radar giving their pattern.
     The parts share the clusters, so one interpolation serves them all. Returns (Nx Ny, N)
     complex128; None where a cluster's range span is too wide for the series (then the direct
-    sum is the faster one).
+    sum is the faster one). Each cluster's interpolation of the facets is checked and its grid
+    refined where it has not converged (_unconverged).
 
     last_on : (ix, iy, i_freq) int index arrays of a sub-grid of the aperture's axes and of
     freqs (uniformly spaced): then also the last part's echo alone there, (len(ix) len(iy),
-    len(i_freq)) complex128, from its own coarse sums interpolated onto the sub-grid only.
+    len(i_freq)) complex128, from its own coarse sums on the first grids interpolated onto the
+    sub-grid only (a part of point scatterers keeps its own budget there; refining is for facets).
     With the two parts that radar.echo makes, the whole echo keeps its bytes (below).
     """
     if NUMBA_MISSING:
@@ -273,45 +303,156 @@ def echo_factorised(parts, grid, freqs, last_on=None):
     centres = np.concatenate([part[0] for part in parts])
     corners = np.concatenate([part[0][:, None, :] + (0.0 if part[3] is None else part[3]) * np.ones((1, 3, 1))
                               for part in parts])  # (K, 3, 3): a point is its own three corners
-    kind = np.repeat(np.arange(len(parts)), [len(part[0]) for part in parts])
-    start_of = np.cumsum([0] + [len(part[0]) for part in parts])
     direct, clusters = factorised_clusters(centres, corners, grid, float(per_pair._wavenumbers(freqs).max()))
     frame = np.ascontiguousarray(grid.frame, dtype=np.float64)
     x_mm, y_mm = (np.asarray(axis, dtype=np.float64) for axis in (grid.x_mm, grid.y_mm))
-    # The direct items on the aperture, then each cluster on its own grid: one series call per part, each adding
-    # to the same coarse sums (a group without items of a part costs that call its antennas' finishing only).
-    groups = [(direct, x_mm, y_mm)] * bool(len(direct)) + [(items, nx, ny) for _, _, items, nx, ny in clusters]
-    sizes = np.array([len(nx) * len(ny) for _, nx, ny in groups])
-    grids = np.concatenate([Aperture(frame, grid.z0_mm, nx, ny).positions for _, nx, ny in groups])
-    n = len(freqs)
-    summed = np.zeros((len(grids), n), dtype=np.complex128)
+    # Groups: the items summed on the aperture itself (centre None), then each cluster on its own grid.
+    groups = [_Group(direct, x_mm, y_mm)] * bool(len(direct)) + [_Group(items, nx, ny, c, rho)
+                                                                 for c, rho, items, nx, ny in clusters]
     half_slope = 0.5 * parts[0][4].slope_hz_per_s if parts[0][4].rvp else 0.0
-    last, alone = len(parts) - 1, None
-    # With last_on the last part is summed first and interpolated onto the sub-grid before the others add to
-    # its sums: 0 + p + f is f + p, the same bytes for the two parts that radar.echo makes.
-    for i in ([last] + list(range(last)) if last_on is not None else range(len(parts))):
+    columns = np.unique(np.linspace(0, len(freqs) - 1, CHECK_FREQUENCIES).round().astype(np.int64))
+    summing = functools.partial(_summed_on_groups, parts, frame, grid.z0_mm, freqs, half_slope, columns)
+    alone = []
+
+    def interpolated_alone(summed):  # the last part's own sums, before the others add to them
+        alone.append(_interpolated(summed, groups, frame, grid.z0_mm, x_mm, y_mm, freqs, half_slope,
+                                   tuple(np.asarray(index) for index in last_on)))
+
+    summed, check = summing(groups, None if last_on is None else interpolated_alone)
+    if summed is None:
+        return None  # a span too wide for the series (warned): the caller sums directly
+    for round_ in range(REFINE_ROUNDS + 1):
+        flagged = [] if check is None else _unconverged(check, groups, x_mm, y_mm)
+        if not flagged:
+            break
+        groups, summed, check = _refined(groups, summed, check, flagged, round_ == REFINE_ROUNDS, summing, x_mm, y_mm)
+        if summed is None:
+            return None
+    whole = _interpolated(summed, groups, frame, grid.z0_mm, x_mm, y_mm, freqs, half_slope)
+    return whole if last_on is None else (whole, alone[0])
+
+
+def _summed_on_groups(parts, frame, z0_mm, freqs, half_slope, columns, groups, after_last=None):
+    """The coarse sums (G, N) complex128 of every part on the groups' grids (rows: each group's nodes in turn) and
+    the facets' own sums at the frequencies `columns`, each cluster's with its centre's phase removed, (G, C)
+    complex64 (None without facets); (None, None) where a range span is too wide for the series. The last part is
+    summed first, then after_last(sums) is called, then the others add to the same sums."""
+    kind = np.repeat(np.arange(len(parts)), [len(part[0]) for part in parts])
+    start_of = np.cumsum([0] + [len(part[0]) for part in parts])
+    sizes = np.array([len(group.node_x) * len(group.node_y) for group in groups])
+    grids = np.concatenate([Aperture(frame, z0_mm, group.node_x, group.node_y).positions for group in groups])
+    summed = np.zeros((len(grids), len(freqs)), dtype=np.complex128)
+    check = None
+    for i in [len(parts) - 1] + list(range(len(parts) - 1)):  # the last part first: 0 + p + f is f + p, the same bytes
         points, normals, weights, offsets, radar = parts[i]
-        mine = [items[kind[items] == i] - start_of[i] for items, _, _ in groups]
+        before = summed[:, columns] if offsets is not None else None  # a copy: the facets' own sums are the change
+        mine = [group.items[kind[group.items] == i] - start_of[i] for group in groups]
         counts = np.array([len(items) for items in mine])
         stops = np.cumsum(counts)
         order = np.concatenate(mine)
         rows = per_pair._kernel_rows(points[order], normals[order], weights[order],
                                      None if offsets is None else offsets[order])
-        if per_pair._series_echo(rows, grids, np.repeat(stops - counts, sizes),
-                                 np.repeat(stops, sizes), freqs, radar, out=summed,
+        if per_pair._series_echo(rows, grids, np.repeat(stops - counts, sizes), np.repeat(stops, sizes), freqs,
+                                 radar, out=summed,
                                  tolerance=None if offsets is not None else POINT_SERIES_TOLERANCE) is None:
-            return None  # a span too wide for the series (warned): the caller sums directly
-        if i == last and last_on is not None:
-            alone = _interpolated(summed, direct, clusters, sizes, frame, grid.z0_mm, x_mm, y_mm, freqs, half_slope,
-                                  tuple(np.asarray(index) for index in last_on))
-    whole = _interpolated(summed, direct, clusters, sizes, frame, grid.z0_mm, x_mm, y_mm, freqs, half_slope)
-    return whole if last_on is None else (whole, alone)
+            return None, None
+        if offsets is not None:
+            check = (0 if check is None else check) + (summed[:, columns] - before)
+        if i == len(parts) - 1 and after_last is not None:
+            after_last(summed)
+    if check is not None:  # each node's delay to its cluster's centre (none for the aperture's group)
+        centre = np.repeat([np.full(3, np.nan) if g.centre is None else g.centre for g in groups], sizes, axis=0)
+        tau = np.nan_to_num(np.linalg.norm(grids - centre, axis=1))[:, None] * (2e-3 / SPEED_OF_LIGHT_M_PER_S)
+        check = check.astype(np.complex64) * phasor(half_slope * tau * tau - tau * freqs[columns])
+    return summed, check
 
 
-def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, freqs, half_slope, sub=None):
-    """The echo (Nx Ny, N) complex128 on the aperture from the coarse sums (G, N) (rows: the directly summed
-    group's aperture antennas, then each cluster's grid); or with sub = (ix, iy, i_freq) on that sub-grid of
-    the aperture and freqs (uniformly spaced), (len(ix) len(iy), len(i_freq)).
+def _unconverged(check, groups, x_mm, y_mm) -> list[int]:
+    """The clusters (indices into groups) whose interpolation of the facets has not converged: the fewest, largest
+    error first, without which the estimated error is within SPATIAL_TOLERANCE of the estimated echo.
+
+    check : (G, C) the facets' sums on the groups' grids at C frequencies, each cluster's centre phase removed
+    (_summed_on_groups). A cluster's estimate: those sums as Chebyshev coefficients over its grid (DCT-I along each
+    axis it interpolates, not along one whose nodes are the aperture's own); its error, the energy of its last
+    TAIL_COEFFICIENTS along each such axis; the echo's, the clusters' energies summed (as if incoherent).
+    """
+    tails, wholes = np.zeros(len(groups)), np.zeros(len(groups))
+    for g, (group, values) in enumerate(zip(groups, _blocks(check, groups))):
+        if group.centre is None:
+            continue
+        qx, qy = len(group.node_x), len(group.node_y)
+        along_x, along_y = qx < len(x_mm), qy < len(y_mm)  # Chebyshev extrema, not the aperture's own axis
+        coefficients = values.reshape(qx, qy, -1)
+        if along_x:
+            coefficients = (_dct_matrix(qx) @ coefficients.reshape(qx, -1)).reshape(qx, qy, -1)
+        if along_y:
+            coefficients = _dct_matrix(qy) @ coefficients
+        energy = np.sum(coefficients.real**2 + coefficients.imag**2, axis=2)
+        # A kink's coefficients decay like l^-2: what lies beyond the last two (truncated and aliased) holds about
+        # q / 3 times their energy.
+        tail = energy[-TAIL_COEFFICIENTS:].sum() * qx / 3 if along_x else 0.0
+        if along_y:
+            tail += energy[:-TAIL_COEFFICIENTS if along_x else None, -TAIL_COEFFICIENTS:].sum() * qy / 3
+        tails[g] = tail
+        wholes[g] = energy.sum()
+    order = np.argsort(tails)[::-1]
+    left = tails[order][::-1].cumsum()[::-1]  # left[k]: the error of every cluster from order[k] on
+    return [int(g) for g, rest in zip(order, left) if rest > SPATIAL_TOLERANCE**2 * wholes.sum()]
+
+
+@functools.lru_cache(maxsize=64)
+def _dct_matrix(count: int) -> np.ndarray:
+    """(count, count) complex64, read-only: the Chebyshev coefficients of a polynomial from its values at count
+    Chebyshev extrema (a DCT-I, its first and last rows and columns halved)."""
+    index = np.arange(count)
+    matrix = 2.0 / (count - 1) * np.cos(np.pi * np.outer(index, index) / (count - 1))
+    matrix[:, [0, -1]] /= 2
+    matrix[[0, -1]] /= 2
+    matrix = matrix.astype(np.complex64)  # as the sums it meets: no conversion a call
+    matrix.flags.writeable = False
+    return matrix
+
+
+def _blocks(array, groups) -> list:
+    """array's rows split into each group's nodes, in turn (views)."""
+    return np.split(array, np.cumsum([len(group.node_x) * len(group.node_y) for group in groups])[:-1])
+
+
+def _refined(groups, summed, check, flagged, last, summing, x_mm, y_mm):
+    """(groups, summed, check) with each flagged cluster on a grid REFINE_FACTOR times finer along the axes it
+    interpolates, or, on the last round or where that grid would not be FACTORISED_GAIN times smaller than the
+    aperture, its items summed on the aperture itself (one group with the items already there); the group on the
+    aperture first, then the clusters kept, then the refined ones. None sums where a span is too wide."""
+    renewed, moved = [], []
+    for g in flagged:
+        items, nx, ny, centre, rho = groups[g]
+        nx, ny = (_chebyshev_nodes(full, math.ceil(REFINE_FACTOR * len(nodes))) for nodes, full in
+                  ((nx, x_mm), (ny, y_mm)))
+        if last or len(nx) * len(ny) * FACTORISED_GAIN > len(x_mm) * len(y_mm):
+            moved.append(items)
+        else:
+            renewed.append(_Group(items, nx, ny, centre, rho))
+    fresh = renewed + ([_Group(np.concatenate(moved), x_mm, y_mm)] if moved else [])
+    fresh_summed, fresh_check = summing(fresh)
+    if fresh_summed is None:
+        return groups, None, None
+    old = list(zip(groups, _blocks(summed, groups), _blocks(check, groups)))
+    new = list(zip(fresh, _blocks(fresh_summed, fresh), _blocks(fresh_check, fresh)))
+    aperture = [entry for entry in old[:1] + new if entry[0].centre is None]
+    if len(aperture) == 2:  # the items already on the aperture and those moved there: one group
+        (first, s0, c0), (second, s1, c1) = aperture
+        aperture = [(_Group(np.concatenate([first.items, second.items]), x_mm, y_mm), s0 + s1, c0 + c1)]
+    flagged = set(flagged)
+    kept = [entry for g, entry in enumerate(old) if g not in flagged and entry[0].centre is not None]
+    ordered = aperture + kept + [entry for entry in new if entry[0].centre is not None]
+    return ([group for group, _, _ in ordered], np.concatenate([rows for _, rows, _ in ordered]),
+            np.concatenate([rows for _, _, rows in ordered]))
+
+
+def _interpolated(summed, groups, frame, z0_mm, x_mm, y_mm, freqs, half_slope, sub=None):
+    """The echo (Nx Ny, N) complex128 on the aperture from the coarse sums (G, N) on the groups' grids (rows: the
+    group summed on the aperture itself, if any, then each cluster's grid); or with sub = (ix, iy, i_freq) on that
+    sub-grid of the aperture and freqs (uniformly spaced), (len(ix) len(iy), len(i_freq)).
     """
     nx, ny, n = len(x_mm), len(y_mm), len(freqs)
     ix, iy, i_freq = (slice(None),) * 3 if sub is None else sub
@@ -321,17 +462,18 @@ def _interpolated(summed, direct, clusters, sizes, frame, z0_mm, x_mm, y_mm, fre
     lx, ly, lf = len(x_sub), len(y_sub), len(f_sub)
     out = np.zeros((lx, 2 * lf, ly))  # antenna (i, j), frequency k: out[i, 2 k (+1), j]
     start = 0
-    if len(direct):
-        on_aperture = np.ascontiguousarray(summed[:sizes[0]].reshape(nx, ny, n)[ix][:, iy][:, :, i_freq])
+    if groups and groups[0].centre is None:
+        on_aperture = np.ascontiguousarray(summed[:nx * ny].reshape(nx, ny, n)[ix][:, iy][:, :, i_freq])
         out.reshape(lx, lf, 2, ly)[:] = on_aperture[..., None].view(np.float64).transpose(0, 2, 3, 1)
-        start = sizes[0]
+        start = nx * ny
     tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
     df = per_pair._uniform_step(f_sub)
     columns = np.ascontiguousarray(np.arange(n)[i_freq])  # a sub-grid's frequencies, in the sums' columns
     # The series' terms by the Bessel bound over the band (w_f above, per mm of rho), one more for the 1 / k^2.
     w_per_mm = np.pi * (f_sub[-1] - f_sub[0]) * tau_per_mm
-    terms = per_pair._series_order(w_per_mm * np.array([rho for _, rho, _, _, _ in clusters]), FREQUENCY_TOLERANCE)
-    for (centre, _, _, node_x, node_y), most in zip(clusters, np.atleast_1d(terms) + 1):
+    clusters = [group for group in groups if group.centre is not None]
+    terms = per_pair._series_order(w_per_mm * np.array([group.rho for group in clusters]), FREQUENCY_TOLERANCE)
+    for (_, node_x, node_y, centre, _), most in zip(clusters, np.atleast_1d(terms) + 1):
         qx, qy = len(node_x), len(node_y)
         fit, basis = _frequency_series(lf, int(most))
         _spread_cluster(summed, start, columns, node_x, node_y,
