@@ -77,9 +77,10 @@ POINT_SERIES_TOLERANCE = 1e-5
 # coefficients over its grid at CHECK_FREQUENCIES frequencies (no extra sums) and the clusters whose last
 # TAIL_COEFFICIENTS hold the most energy are refined, REFINE_FACTOR times finer, until the tails left are within
 # SPATIAL_TOLERANCE of the clusters' energy; after REFINE_ROUNDS rounds, or where a grid would not be
-# FACTORISED_GAIN times smaller than the aperture, a cluster is summed on the aperture itself. The tails
-# underestimate the error 1.6-3x (the kink's coefficients decay like l^-2): SPATIAL_TOLERANCE keeps the
-# measured errors below 1e-4 with that margin (docs/radar.md).
+# FACTORISED_GAIN times smaller than the aperture, a cluster is summed on the aperture itself. Scaled for the
+# kink's l^-2 decay (_unconverged), the estimate was 0.55-0.9 of the true error of the bumpy sphere's worst
+# clusters, and 0.8-1.3 of the whole echo's on it and on the demo heart: the bumpy shapes end 2.1-6.2e-5 from the
+# series (docs/radar.md).
 CHECK_FREQUENCIES = 4
 TAIL_COEFFICIENTS = 2
 SPATIAL_TOLERANCE = 5e-5
