@@ -79,7 +79,7 @@ POINT_SERIES_TOLERANCE = 1e-5
 # SPATIAL_TOLERANCE of the clusters' energy; after REFINE_ROUNDS rounds, or where a grid would not be
 # FACTORISED_GAIN times smaller than the aperture, a cluster is summed on the aperture itself. Scaled for the
 # kink's l^-2 decay (_unconverged), the estimate was 0.55-0.9 of the true error of the bumpy sphere's worst
-# clusters, and 0.8-1.3 of the whole echo's on it and on the demo heart: the bumpy shapes end 2.1-6.2e-5 from the
+# clusters, and 0.73-1.3 of the whole echo's on four bumpy shapes and the demo heart, which end 2.4-6.2e-5 from the
 # series (docs/radar.md).
 CHECK_FREQUENCIES = 4
 TAIL_COEFFICIENTS = 2
