@@ -296,3 +296,30 @@ def test_unconverged_estimates_a_kinked_clusters_error_and_passes_a_smooth_one()
     truth = np.sqrt(np.mean((interpolant - (np.abs(fine_u - 0.13) + 0.5 * fine_v)) ** 2) / np.mean(kinked**2))
     assert flagged(kinked, truth / 2) == [0]
     assert flagged(kinked, truth * 2) == []
+
+
+def test_refined_keeps_each_groups_rows_and_joins_the_aperture_groups():
+    """_refined's layout: the group on the aperture first (the items already there joined by those moved there on
+    the last round, their sums added), then the clusters kept with their own rows, then the refined ones on finer
+    grids; every group's rows are its own nodes' sums."""
+    x_mm = y_mm = np.linspace(-10.0, 10.0, 8)
+
+    def sums_of(groups):  # each node's sum: its group's first item, so rows show where they came from
+        rows = np.concatenate([np.full(len(g.node_x) * len(g.node_y), g.items[0], dtype=np.complex128)
+                               for g in groups])
+        return np.repeat(rows[:, None], 3, axis=1), np.repeat(rows[:, None], 2, axis=1).astype(np.complex64)
+
+    nodes = RF._chebyshev_nodes(x_mm, 3)
+    groups = [RF._Group(np.array([100]), x_mm, y_mm), RF._Group(np.array([1]), nodes, nodes, np.zeros(3), 5.0),
+              RF._Group(np.array([2]), nodes, nodes, np.zeros(3), 5.0),
+              RF._Group(np.array([3]), nodes, nodes, np.zeros(3), 5.0)]
+    summed, check = sums_of(groups)
+    refined, new_summed, new_check = RF._refined(groups, summed, check, [3, 1], False, sums_of, x_mm, y_mm)
+    assert [g.items.tolist() for g in refined] == [[100], [2], [3], [1]]
+    assert all(len(g.node_x) == 5 for g in refined[2:])  # 3 -> ceil(1.4 * 3) Chebyshev nodes a side
+    blocks = RF._blocks(new_summed, refined)
+    assert all(np.all(block == g.items[0]) for block, g in zip(blocks, refined))
+    assert new_check.shape == (len(new_summed), 2)
+    moved, moved_summed, _ = RF._refined(groups, summed, check, [2], True, sums_of, x_mm, y_mm)
+    assert [g.items.tolist() for g in moved] == [[100, 2], [1], [3]] and moved[0].centre is None
+    assert np.all(RF._blocks(moved_summed, moved)[0] == 102)
