@@ -14,10 +14,10 @@ import numpy as np
 
 import meshsar_builder.radar.series as per_pair  # looked up at call time (the bench times its series)
 from meshsar_builder.pipeline.errors import MeshsarError
-from meshsar_builder.radar.series import _cos_sin
 from meshsar_builder.radar.imaging import phasor
 from meshsar_builder.radar.jit import KERNEL_OPTIONS, NUMBA_MISSING, njit
 from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, Aperture
+from meshsar_builder.radar.series import _cos_sin
 
 # A cluster c of facets (or points) with centre x_c and radius rho_c (its farthest corner) has, with the centre's
 # own phase removed,
