@@ -364,9 +364,9 @@ def _summed_on_groups(parts, frame, z0_mm, freqs, half_slope, columns, groups, a
             check = (0 if check is None else check) + (summed[:, columns] - before)
         if i == len(parts) - 1 and after_last is not None:
             after_last(summed)
-    if check is not None:  # each node's delay to its cluster's centre (none for the aperture's group)
-        centre = np.repeat([np.full(3, np.nan) if g.centre is None else g.centre for g in groups], sizes, axis=0)
-        tau = np.nan_to_num(np.linalg.norm(grids - centre, axis=1))[:, None] * (2e-3 / SPEED_OF_LIGHT_M_PER_S)
+    if check is not None:  # each node's delay to its cluster's centre (the aperture's group is not checked)
+        centre = np.repeat([np.zeros(3) if g.centre is None else g.centre for g in groups], sizes, axis=0)
+        tau = np.linalg.norm(grids - centre, axis=1)[:, None] * (2e-3 / SPEED_OF_LIGHT_M_PER_S)
         check = check.astype(np.complex64) * phasor(half_slope * tau * tau - tau * freqs[columns])
     return summed, check
 
