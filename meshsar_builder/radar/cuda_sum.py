@@ -33,7 +33,7 @@ import numpy as np
 
 from meshsar_builder.pipeline.errors import MeshsarError
 from meshsar_builder.radar.differentiable import SERIES_GAP, SERIES_IM, SERIES_RE, SERIES_TERMS
-from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, RadarParams
+from meshsar_builder.radar.params import DELAY_S_PER_MM, SPEED_OF_LIGHT_M_PER_S, RadarParams
 
 try:
     from numba import cuda, float64
@@ -47,7 +47,6 @@ else:
 WARP = 32
 WARPS = 4  # per block: each takes every WARPS-th group of frequencies
 GROUP = 16  # frequencies a thread carries by phasor recurrence: 2 x GROUP float64 accumulators in registers
-DELAY_S_PER_MM = 2e-3 / SPEED_OF_LIGHT_M_PER_S  # round trip
 HALF_TERMS = len(SERIES_RE)
 
 

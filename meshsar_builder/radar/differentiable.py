@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, VIEW_FRAMES, RadarParams, probe_points
+from meshsar_builder.radar.params import DELAY_S_PER_MM, SPEED_OF_LIGHT_M_PER_S, VIEW_FRAMES, RadarParams, probe_points
 
 # Antenna x facet x frequency terms per chunk: the facet integral holds ~40 real arrays
 # of this size for the backward pass, ~170 MB in float32.
@@ -120,7 +120,7 @@ def echo_chunk(centroids, normals, weights, edges, positions, freqs, radar: Rada
     cos = ((diff * normals[..., None, :, :]).sum(-1) / r).clamp_min(0)
     lobe = cos if radar.reflectivity == "po" else (1 - radar.kappa) * cos**radar.p + radar.kappa * cos
     amplitude = weights[..., None, :] * lobe / r2  # (..., M, F)
-    tau = r * (2e-3 / SPEED_OF_LIGHT_M_PER_S)
+    tau = r * DELAY_S_PER_MM
     cycles = tau[..., None] * freqs  # (..., M, F, Ef)
     if radar.rvp:
         cycles = cycles - (0.5 * radar.slope_hz_per_s) * (tau * tau)[..., None]

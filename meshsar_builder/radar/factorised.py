@@ -16,7 +16,7 @@ import meshsar_builder.radar.series as per_pair  # looked up at call time (the b
 from meshsar_builder.pipeline.errors import MeshsarError
 from meshsar_builder.radar.imaging import phasor
 from meshsar_builder.radar.jit import KERNEL_OPTIONS, NUMBA_MISSING, njit
-from meshsar_builder.radar.params import SPEED_OF_LIGHT_M_PER_S, Aperture
+from meshsar_builder.radar.params import DELAY_S_PER_MM, Aperture
 from meshsar_builder.radar.series import _cos_sin
 
 # A cluster c of facets (or points) with centre x_c and radius rho_c (its farthest corner) has, with the centre's
@@ -366,7 +366,7 @@ def _summed_on_groups(parts, frame, z0_mm, freqs, half_slope, columns, groups, a
             after_last(summed)
     if check is not None:  # each node's delay to its cluster's centre (the aperture's group is not checked)
         centre = np.repeat([np.zeros(3) if g.centre is None else g.centre for g in groups], sizes, axis=0)
-        tau = np.linalg.norm(grids - centre, axis=1)[:, None] * (2e-3 / SPEED_OF_LIGHT_M_PER_S)
+        tau = np.linalg.norm(grids - centre, axis=1)[:, None] * DELAY_S_PER_MM
         check = check.astype(np.complex64) * phasor(half_slope * tau * tau - tau * freqs[columns])
     return summed, check
 
@@ -470,7 +470,7 @@ def _interpolated(summed, groups, frame, z0_mm, x_mm, y_mm, freqs, half_slope, s
         on_aperture = np.ascontiguousarray(summed[:nx * ny].reshape(nx, ny, n)[ix][:, iy][:, :, i_freq])
         out.reshape(lx, lf, 2, ly)[:] = on_aperture[..., None].view(np.float64).transpose(0, 2, 3, 1)
         start = nx * ny
-    tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
+    tau_per_mm = DELAY_S_PER_MM
     df = per_pair._uniform_step(f_sub)
     columns = np.ascontiguousarray(np.arange(n)[i_freq])  # a sub-grid's frequencies, in the sums' columns
     # The series' terms by the Bessel bound over the band (w_f above, per mm of rho), one more for the 1 / k^2.

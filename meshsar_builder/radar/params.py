@@ -14,6 +14,7 @@ import numpy as np
 from meshsar_builder.radar.imaging import ImageParams, image_metadata, invalid
 
 SPEED_OF_LIGHT_M_PER_S = 299_792_458.0
+DELAY_S_PER_MM = 2e-3 / SPEED_OF_LIGHT_M_PER_S  # round trip
 
 # Rows u, v, w of each preset view (DESIGN section 3): w points from the heart to the radar.
 VIEW_FRAMES = {

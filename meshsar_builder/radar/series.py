@@ -30,7 +30,7 @@ from meshsar_builder.radar.imaging import SPEED_OF_LIGHT_MM_PER_S
 from meshsar_builder.radar.jit import KERNEL_OPTIONS as _KERNEL_OPTIONS
 from meshsar_builder.radar.jit import NUMBA_MISSING as _NUMBA_MISSING
 from meshsar_builder.radar.jit import njit
-from meshsar_builder.radar.params import DIRECT_TERMS_PER_CHUNK, SPEED_OF_LIGHT_M_PER_S, RadarParams
+from meshsar_builder.radar.params import DELAY_S_PER_MM, DIRECT_TERMS_PER_CHUNK, RadarParams
 
 _TINY = float(np.finfo(np.float64).tiny)
 
@@ -70,7 +70,7 @@ def _amplitude_and_delay(points, normals, weights, positions, radar: RadarParams
     cos /= r
     np.maximum(cos, 0.0, out=cos)
     amplitude = ((1.0 - kappa) * cos**p + kappa * cos) * weights[None, :] / r2
-    return amplitude, r * (2e-3 / SPEED_OF_LIGHT_M_PER_S), r
+    return amplitude, r * DELAY_S_PER_MM, r
 
 
 def _echo_direct(points, normals, weights, offsets, positions, freqs, radar):
@@ -525,7 +525,7 @@ def _series_echo(rows, positions, first, last, freqs, radar, out=None, tolerance
     low, high = np.empty(len(positions)), np.empty(len(positions))
     _range_bounds(rows, _item_reach(rows), positions, first, last, low, high)
     centre = (low + high) / 2
-    tau_per_mm = 2e-3 / SPEED_OF_LIGHT_M_PER_S
+    tau_per_mm = DELAY_S_PER_MM
     cycles_per_mm = df * tau_per_mm
     n_centre = (n - 1) / 2
     tolerance = CHEBYSHEV_TOLERANCE if tolerance is None else tolerance
