@@ -83,10 +83,14 @@ def plan(ctx: Context, results: Results) -> list[Item]:
         publish(folder, template, round_)
     prefix = "" if final else f"round{round_}/"
     item_params = {k: v for k, v in dataclasses.asdict(params).items() if k not in ROUND_KEYS}
+    # A subject's fit in the round before is the best guess of its cost in this one (the runner starts the
+    # costliest first; each round waits for its last fit).
+    before = {rec["item"].rsplit("/", 1)[-1]: rec["seconds"] for rec in results.of(NAME).values()} if round_ else {}
     return [
         Item(f"{prefix}{i}", (f"{prefix}{i}.ply",), inputs=(str(ctx.stage_dir("remesh") / f"{i}.ply"), template),
              params=item_params, data={"round": round_, "final": final,
-                                       **{k: rec[k] for k in ("source", "subject", "frame", "phase", "provenance")}})
+                                       **{k: rec[k] for k in ("source", "subject", "frame", "phase", "provenance")}},
+             cost=before.get(i, 0.0))
         for i, rec in subjects.items()
     ]
 

@@ -47,7 +47,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
             writes = [ref] * (name == "forward") + [index for index, _ in chain]
             items.append(Item(f"{reference}-cycle-{name}", tuple(f"{mids[i]}.ply" for i in writes),
                               inputs=tuple(str(remeshed / f"{mid}.ply") for mid in mids), params=params,
-                              data={"frames": mids, "reference": reference, "chain": chain, "writes": writes}))
+                              data={"frames": mids, "reference": reference, "chain": chain, "writes": writes},
+                              cost=len(chain)))  # a fit per frame of the chain
     return items
 
 

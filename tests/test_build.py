@@ -297,21 +297,21 @@ def _timed_item(ctx, item):
     return {"start": start, "end": time.time()}
 
 
-def _toy_plan(name: str, seconds: list[float], disk_full: bool, ctx, results):
+def _toy_plan(name: str, seconds: list[float], disk_full: bool, costs: list[float] | None, ctx, results):
     from meshsar_builder.pipeline.runner import Item
 
-    return [Item(f"{name}-{i}", (f"{name}-{i}.txt",), params={"seconds": s, "disk_full": disk_full})
-            for i, s in enumerate(seconds)]
+    return [Item(f"{name}-{i}", (f"{name}-{i}.txt",), params={"seconds": s, "disk_full": disk_full},
+                 cost=costs[i] if costs else 0.0) for i, s in enumerate(seconds)]
 
 
-def _toy_stage(name: str, seconds: list[float], after=None, disk_full: bool = False):
+def _toy_stage(name: str, seconds: list[float], after=None, disk_full: bool = False, costs: list[float] | None = None):
     """A stage of items that sleep `seconds` each (workers get the stage pickled: no local functions)."""
     import functools
 
     from meshsar_builder.pipeline.runner import Stage
 
-    return Stage(name=name, version=1, plan=functools.partial(_toy_plan, name, seconds, disk_full), run=_timed_item,
-                 after=after)
+    return Stage(name=name, version=1, plan=functools.partial(_toy_plan, name, seconds, disk_full, costs),
+                 run=_timed_item, after=after)
 
 
 def _stage_times(results, name: str) -> tuple[float, float]:
@@ -322,7 +322,8 @@ def _stage_times(results, name: str) -> tuple[float, float]:
 def test_stages_that_do_not_read_each_other_share_the_workers(tmp_path):
     """b and c read only a: c's short items run beside b's long one; d (after all) waits for both;
     the summary keeps pipeline order though c finished first."""
-    from meshsar_builder.pipeline.runner import Context, LocalPool, Results, run_stages
+    from meshsar_builder.pipeline.pools import LocalPool
+    from meshsar_builder.pipeline.runner import Context, Results, run_stages
 
     stages = {"a": _toy_stage("a", [0.0]), "b": _toy_stage("b", [4.0], after=("a",)),
               "c": _toy_stage("c", [0.2, 0.2, 0.2], after=("a",)), "d": _toy_stage("d", [0.0])}
@@ -343,13 +344,67 @@ def test_stages_that_do_not_read_each_other_share_the_workers(tmp_path):
     assert _stage_times(serial, "c")[0] >= _stage_times(serial, "b")[1]
 
 
+def test_a_pool_starts_the_costliest_items_first_and_equal_ones_in_plan_order(tmp_path):
+    """Item.cost is a hint: with workers, items start from the costliest (ties in plan order), so a long item
+    planned last does not leave the other workers idle at the pass's end; in this process, plan order. The
+    records keep plan order either way."""
+    from meshsar_builder.pipeline.pools import LocalPool
+    from meshsar_builder.pipeline.runner import Context, Results, run_stage
+
+    costs = [1.0, 0.0, 5.0, 1.0, 3.0]
+    stage = _toy_stage("a", [0.0] * len(costs), costs=costs)
+    pool = LocalPool(1)  # one worker: items start in the order they were handed over
+    try:
+        for out, used in ((tmp_path / "pool", pool), (tmp_path / "here", None)):
+            results = Results()
+            run_stage(Context(out=out, recipe=None), stage, results, used)
+            records = results.of("a")
+            assert list(records) == [f"a-{i}" for i in range(len(costs))]
+            started = sorted(records, key=lambda i: records[i]["start"])
+            assert started == (["a-2", "a-4", "a-0", "a-3", "a-1"] if used else list(records)), started
+    finally:
+        pool.close()
+
+
+def test_local_workers_start_with_the_stages_imported_and_their_pools_environment(monkeypatch):
+    """The workers are forked from a server that imported the stages beside the build's own imports
+    (pools.start_worker_server), so a worker's first item does not wait for them; and a worker has the
+    environment of its pool's creator, not the server's from when the server started."""
+    from meshsar_builder.pipeline.pools import WORKER_START, LocalPool, start_worker_server
+
+    if WORKER_START != "forkserver":
+        pytest.skip(f"no fork server on this platform: workers are {WORKER_START}ed")
+    # In a fresh process: a server already running in this one keeps the preload it started with.
+    code = ("from meshsar_builder.pipeline.pools import LocalPool, start_worker_server\n"
+            "from meshsar_builder.pipeline.runner import stage_modules\n"
+            "if __name__ == '__main__':\n"
+            "    start_worker_server(stage_modules())\n"
+            "    pool = LocalPool(1)\n"
+            "    print(pool.executor.submit(eval, \"sorted(m for m in __import__('sys').modules if m.startswith("
+            "'stages.'))\").result())\n"
+            "    pool.close()\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    from meshsar_builder.pipeline.runner import stage_modules
+
+    assert run.stdout.strip() == str(sorted(stage_modules())), run.stdout + run.stderr
+    start_worker_server([])  # running before the variable is set, as after a first build in this process
+    monkeypatch.setenv("MESHSAR_TEST_VARIABLE", "set after the server started")
+    pool = LocalPool(1)
+    try:
+        seen = pool.executor.submit(eval, "__import__('os').environ.get('MESHSAR_TEST_VARIABLE')").result()
+    finally:
+        pool.close()
+    assert seen == "set after the server started"
+
+
 def test_a_stage_that_stops_the_build_stops_the_stages_beside_it(tmp_path):
     """b finds the disk full while c has many items to go: the build raises b's error, c's pending
     items are cancelled, and no stage's thread is left running."""
     import threading
 
     from meshsar_builder.pipeline.errors import MeshsarError
-    from meshsar_builder.pipeline.runner import Context, LocalPool, Results, run_stages
+    from meshsar_builder.pipeline.pools import LocalPool
+    from meshsar_builder.pipeline.runner import Context, Results, run_stages
 
     stages = {"b": _toy_stage("b", [1.0], disk_full=True, after=()), "c": _toy_stage("c", [0.5] * 20, after=())}
     pool = LocalPool(2)
@@ -366,10 +421,10 @@ def test_a_stage_that_stops_the_build_stops_the_stages_beside_it(tmp_path):
 
 def test_a_local_dask_cluster_keeps_its_periodic_work_off_the_items():
     """The LocalCluster's workers run without Dask's statistical profiler, 20 ms tick and 0.5 s system monitor
-    (runner.QUIET_DASK): they sample and wake under the GIL of the item's thread."""
+    (pools.QUIET_DASK): they sample and wake under the GIL of the item's thread."""
     import dask
 
-    from meshsar_builder.pipeline.runner import QUIET_DASK, DaskPool
+    from meshsar_builder.pipeline.pools import QUIET_DASK, DaskPool
 
     def settings():
         return {key: dask.config.get(key) for key in QUIET_DASK}
@@ -393,8 +448,8 @@ def test_a_local_dask_cluster_gives_a_worker_its_next_item_when_it_is_free():
     """A long item and three short ones on 2 workers: the shorts run one after the other on the worker that the
     long one leaves free. With Dask's default worker-saturation (1.1) the scheduler sent each worker two of them,
     and a short one queued behind the long item waited until work stealing moved it, measured 0.95 s late, or
-    until the long one ended (runner.SCHEDULE_WHEN_FREE)."""
-    from meshsar_builder.pipeline.runner import DaskPool
+    until the long one ended (pools.SCHEDULE_WHEN_FREE)."""
+    from meshsar_builder.pipeline.pools import DaskPool
 
     pool = DaskPool("local:2")
     try:
@@ -422,7 +477,7 @@ def test_a_dask_scheduler_that_sends_items_ahead_is_named_when_the_build_connect
     import dask
     from distributed import LocalCluster
 
-    from meshsar_builder.pipeline.runner import SCHEDULE_WHEN_FREE, DaskPool
+    from meshsar_builder.pipeline.pools import SCHEDULE_WHEN_FREE, DaskPool
 
     for settings, warned in (({}, True), (SCHEDULE_WHEN_FREE, False)):  # a scheduler alone: no worker in this process
         with dask.config.set(settings), LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
@@ -454,7 +509,8 @@ def test_warm_hooks_run_once_in_the_builds_process_when_it_has_workers(tmp_path)
     import os
     import time
 
-    from meshsar_builder.pipeline.runner import Context, LocalPool, Results, run_stages
+    from meshsar_builder.pipeline.pools import LocalPool
+    from meshsar_builder.pipeline.runner import Context, Results, run_stages
 
     record = tmp_path / "warm.txt"
     stages = {"a": dataclasses.replace(_toy_stage("a", [0.0]), warm=_failing_warm),
@@ -478,7 +534,7 @@ def test_warm_hooks_run_once_in_the_builds_process_when_it_has_workers(tmp_path)
 def test_dask_workers_load_pymeshlab_on_their_main_thread_and_exit_cleanly(capfd):
     """Dask runs tasks on a thread pool; pymeshlab loaded first there (after scipy.sparse) left glibc's heap
     corrupt and the worker aborted at exit. DaskPool has every worker load it on its main thread first."""
-    from meshsar_builder.pipeline.runner import DaskPool
+    from meshsar_builder.pipeline.pools import DaskPool
 
     # exec of source: unpickling the task imports nothing on the worker's main thread (a function of this file would
     # import its module there first); scipy.sparse before pymeshlab, as the register stage's modules load them.

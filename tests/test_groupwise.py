@@ -117,3 +117,24 @@ def test_unique_edges_are_the_rows_numpy_finds(faces, dtype):
     rows = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
     got = unique_edges(faces)
     assert got.dtype == faces.dtype and got.shape == rows.shape and np.array_equal(got, rows)
+
+
+def test_a_rounds_fits_are_costed_by_the_same_subjects_fits_in_the_round_before(tmp_path, monkeypatch):
+    """The register stage's items carry the subject's fit time of the previous round as their cost (the pool starts
+    the costliest first, runner.Item.cost); round 0 has none to go by."""
+    from types import SimpleNamespace
+
+    from meshsar_builder.pipeline.runner import Context, Results
+    from stages import register
+
+    monkeypatch.setattr(register, "seed_template", lambda *args: "template-0.ply")
+    monkeypatch.setattr(register, "groupwise_template", lambda folder, round_, *args: (f"template-{round_}.ply", 2.0))
+    ctx = Context(out=tmp_path, recipe=SimpleNamespace(registration=RegistrationParams()))
+    subject = {"use": "ssm", "source": "s", "subject": "x", "frame": None, "phase": "", "provenance": "phantom"}
+    results = Results(done={"remesh": {name: subject for name in ("a", "b", "c")}})
+    assert [it.cost for it in register.plan(ctx, results)] == [0.0, 0.0, 0.0]
+    results.done["register"] = {f"round0/{name}": {"item": f"round0/{name}", "seconds": s}
+                                for name, s in (("a", 2.5), ("b", 1.25), ("c", 4.0))}
+    results.passes["register"] = 1
+    items = register.plan(ctx, results)
+    assert [(it.id, it.cost) for it in items] == [("round1/a", 2.5), ("round1/b", 1.25), ("round1/c", 4.0)]

@@ -136,7 +136,7 @@ def test_sigkilled_dask_worker_is_retried_without_duplicates(smoke, tmp_path):
     import dask
     from distributed import Client, LocalCluster
 
-    from meshsar_builder.pipeline.runner import SCHEDULE_WHEN_FREE
+    from meshsar_builder.pipeline.pools import SCHEDULE_WHEN_FREE
 
     out, _ = smoke
     killed = tmp_path / "killed"

@@ -279,8 +279,8 @@ def test_dask_sends_resource_tagged_items_only_to_workers_with_the_resource(tmp_
     import dask
     from distributed import Scheduler, SpecCluster, Worker
 
-    from meshsar_builder.pipeline.runner import (
-        SCHEDULE_WHEN_FREE, Context, DaskPool, Item, Results, Stage, check_stage, run_stage)
+    from meshsar_builder.pipeline.pools import SCHEDULE_WHEN_FREE, DaskPool
+    from meshsar_builder.pipeline.runner import Context, Item, Results, Stage, check_stage, run_stage
 
     workers = {"cpu": {"cls": Worker, "options": {"nthreads": 1}},
                "gpu": {"cls": Worker, "options": {"nthreads": 1, "resources": {"GPU": 1}}}}
@@ -353,7 +353,7 @@ def test_a_local_dask_cluster_can_take_gpu_items_and_keeps_the_allocators_defaul
     use them); and they run without Dask's MALLOC_TRIM_THRESHOLD_ (it cost their items ~15 % more CPU),
     with its one-thread settings kept."""
 
-    from meshsar_builder.pipeline.runner import DaskPool
+    from meshsar_builder.pipeline.pools import DaskPool
 
     # As in a `meshsar build` process: a Dask cluster started earlier in this test process has
     # written its nanny's variables into os.environ, and spawned workers inherit them.

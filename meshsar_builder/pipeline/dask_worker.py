@@ -1,4 +1,4 @@
-"""What every Dask worker of a build loads on its own main thread before any task (runner.DaskPool registers it)."""
+"""What every Dask worker of a build loads on its own main thread before any task (pools.DaskPool registers it)."""
 
 from __future__ import annotations
 

@@ -23,16 +23,13 @@ The runner never imports a stage; stages import the library.
 
 from __future__ import annotations
 
-import concurrent.futures as cf
 import errno
-import multiprocessing
 import os
 import queue
 import sys
 import threading
 import time
 import traceback
-import warnings
 from dataclasses import dataclass, field
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -52,6 +49,7 @@ from meshsar_builder.pipeline.io import (
     write_json,
 )
 from meshsar_builder.pipeline.lock import folder_lock
+from meshsar_builder.pipeline.pools import make_pool, stage_resources, worker_server
 from meshsar_builder.pipeline.recipe import Recipe
 
 # A full disk, a read-only or unwritable output folder, an exhausted quota.
@@ -72,6 +70,9 @@ class Item:
     inputs: tuple[str, ...] = ()  # files whose content the outputs depend on
     params: Any = None  # JSON-able: what, besides inputs, the outputs depend on
     data: Any = None
+    # Expected run time relative to the pass's other items (not hashed): a pool starts the costliest first, so a
+    # pass does not end on one long item started last while the other workers idle (longest processing time first).
+    cost: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -128,6 +129,12 @@ class Results:
 
     def of(self, stage: str) -> dict[str, dict]:
         return self.done.get(stage, {})
+
+
+def stage_modules() -> list[str]:
+    """The modules of the registered stages, in pipeline order, not imported."""
+    found = {ep.name: ep.module for ep in entry_points(group="meshsar.stages")}
+    return [found[name] for name in STAGE_ORDER if name in found]
 
 
 def available_stages() -> dict[str, Stage]:
@@ -220,150 +227,6 @@ def run_item(ctx: Context, stage: Stage, item: Item) -> tuple[dict | None, dict 
         }
 
 
-def stage_resources(ctx: Context, stage: Stage) -> dict | None:
-    """The Dask resources the stage's items need (Stage.resources), None for none."""
-    return (stage.resources(ctx) or None) if stage.resources is not None else None
-
-
-class LocalPool:
-    """Local worker processes (spawn: Embree, BLAS and torch threads do not survive fork reliably)."""
-
-    def __init__(self, workers: int):
-        self.executor = cf.ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
-        self.slots = 2 * workers
-
-    def submit(self, fn, *args, resources: dict | None = None):
-        # One machine: every worker sees what this process sees, so resources mean nothing here.
-        return self.executor.submit(fn, *args)
-
-    def check(self, ctx: Context, stage: Stage) -> None:
-        """Stage.check, here: the workers are this machine's processes."""
-        if stage.check is not None:
-            stage.check(ctx)
-
-    def wait(self, futures: set) -> tuple[set, set]:
-        return cf.wait(futures, return_when=cf.FIRST_COMPLETED)
-
-    def close(self) -> None:  # again after a stop (run_stages): a no-op
-        self.executor.shutdown(cancel_futures=True)
-
-
-# Dask settings for a LocalCluster's scheduler and workers (DaskPool); workers started by hand take them from the
-# environment: DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False, DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL=1s,
-# DASK_DISTRIBUTED__ADMIN__SYSTEM_MONITOR__INTERVAL=5s (docs/data.md).
-QUIET_DASK = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "1s",
-              "distributed.admin.system-monitor.interval": "5s"}
-
-
-# Dask's scheduler sends each worker up to worker-saturation x its threads items (1.1 by default: two for one
-# thread), and moves a queued one only by work stealing, which measured up to a second late or not at all: at the
-# end of a stage or register round one worker waited behind its second item while the other idled. At 1.0 the
-# scheduler keeps the items (once their task group outnumbers the threads twice, as the build's items all share
-# run_item's) and sends each worker the next when it finishes. A scheduler started by hand takes it from
-# DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0 (docs/data.md).
-SCHEDULE_WHEN_FREE = {"distributed.scheduler.worker-saturation": 1.0}
-
-
-class DaskPool:
-    """Items as Dask tasks: a scheduler address (tcp://HOST:PORT) or `local:N` for a LocalCluster.
-
-    Workers must import this project (same version) and see the build folder at the
-    same path (a shared filesystem). A task whose worker dies is rerun by Dask on
-    another worker; writes are atomic, so a rerun leaves no duplicate or partial file.
-    """
-
-    def __init__(self, scheduler: str):
-        import dask
-        from distributed import Client, LocalCluster
-
-        if scheduler.startswith("local:"):
-            n = int(scheduler.split(":", 1)[1])
-            # Dask's nannies start workers with MALLOC_TRIM_THRESHOLD_=65536: glibc then hands
-            # freed memory back at once, and every item's large arrays fault their pages in
-            # anew. Measured on the pipeline bench's recipe, 2 workers: the workers' CPU 245 s
-            # with it, 213 s without (the local pool's: 202 s), the build 142.6 -> 122.4 s.
-            # So the workers get the allocator's own defaults, as the local pool's have (None
-            # unsets a variable there). A value already in this process's environment still goes
-            # through: Dask's nannies also write their variables into the starting process's.
-            # Every worker of a LocalCluster runs on this machine and sees its GPUs, as a local
-            # pool's would: each declares one, so items that ask for a GPU (a CUDA radar) run
-            # here too, one per worker; Stage.check still tests that CUDA is really there.
-            # Dask's own periodic work is kept off the cores that the items use: the workers' statistical
-            # profiler (a stack sample of the item's thread every 10 ms, under the GIL), the event loops' 20 ms
-            # tick and the 0.5 s system monitor. Measured on the pipeline bench's recipe, 2 workers (two runs
-            # each): 86.0-86.9 s with Dask's defaults, 81.7-83.2 s without (a register fit 5.85 -> 5.55 s).
-            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
-                                  **QUIET_DASK, **SCHEDULE_WHEN_FREE}):
-                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                            dashboard_address=None, resources={"GPU": 1})
-            self.client = Client(self.cluster)
-        else:
-            self.cluster = None
-            self.client = Client(scheduler, timeout="30s")
-            # A lambda goes by value: the scheduler need not have this project installed. Schedulers older than
-            # the setting (distributed < 2022.11) have no such attribute and are not judged.
-            saturation = self.client.run_on_scheduler(
-                lambda dask_scheduler: getattr(dask_scheduler, "WORKER_SATURATION", None))
-            if saturation not in (None, SCHEDULE_WHEN_FREE["distributed.scheduler.worker-saturation"]):
-                warnings.warn(f"Dask scheduler {scheduler}: worker-saturation is {saturation}, so it sends workers "
-                              "items ahead and one can wait behind a long item while another worker idles; start "
-                              "the scheduler with DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0 (docs/data.md)",
-                              stacklevel=2)
-        from meshsar_builder.pipeline.dask_worker import MainThreadImports
-
-        self.client.register_plugin(MainThreadImports())
-        self.slots = 2 * max(1, sum(self.client.nthreads().values()))
-
-    def submit(self, fn, *args, resources: dict | None = None):
-        return self.client.submit(fn, *args, pure=False, resources=resources)
-
-    def worker_resources(self) -> dict[str, dict]:
-        """Worker address -> the resources it declared ({} for none), every worker of the cluster."""
-        try:
-            info = self.client.scheduler_info(n_workers=-1)  # newer distributed lists 5 workers by default
-        except TypeError:  # older distributed lists them all and takes no n_workers
-            info = self.client.scheduler_info()
-        return {addr: dict(w.get("resources") or {}) for addr, w in info["workers"].items()}
-
-    def check(self, ctx: Context, stage: Stage) -> None:
-        """Stage.check on the workers that will take the stage's items; MeshsarError if none can.
-
-        Dask holds a task that needs resources no worker has until such a worker joins,
-        so a build whose GPU workers are missing would wait forever: refuse it here.
-        """
-        need = stage_resources(ctx, stage)
-        workers = self.worker_resources()
-        if need:
-            workers = {addr: have for addr, have in workers.items()
-                       if all(have.get(name, 0) >= amount for name, amount in need.items())}
-            if not workers:
-                flags = " ".join(f"{name}={amount}" for name, amount in need.items())
-                raise MeshsarError(
-                    f"stage {stage.name}: its items need Dask worker resources {need}, and no worker of "
-                    f"{self.client.scheduler.address} declares them; start such workers first, e.g. "
-                    f"dask worker {self.client.scheduler.address} --nthreads 1 --resources \"{flags}\"")
-        if stage.check is not None and workers:
-            self.client.run(stage.check, ctx, workers=list(workers))
-
-    def wait(self, futures: set) -> tuple[set, set]:
-        from distributed import wait
-
-        done, pending = wait(list(futures), return_when="FIRST_COMPLETED")
-        return set(done), set(pending)
-
-    def close(self) -> None:
-        self.client.close()
-        if self.cluster is not None:
-            self.cluster.close()
-
-
-def make_pool(workers: int = 1, scheduler: str | None = None) -> LocalPool | DaskPool | None:
-    """None (run items in this process), a local process pool, or a Dask client."""
-    if scheduler:
-        return DaskPool(scheduler)
-    return LocalPool(workers) if workers > 1 else None
-
-
 def check_stage(ctx: Context, stage: Stage, pool=None) -> None:
     """Stage.check where the stage's items will run: this process, or the pool's workers."""
     if pool is not None:
@@ -373,11 +236,11 @@ def check_stage(ctx: Context, stage: Stage, pool=None) -> None:
 
 
 def _outcomes(ctx: Context, stage: Stage, todo: list[Item], pool):
-    """Run items, yielding (record, failure) as they finish; at most pool.slots in flight."""
+    """Run items, yielding (record, failure) as they finish; at most pool.slots in flight, costliest first."""
     if pool is None:
         yield from (run_item(ctx, stage, it) for it in todo)
         return
-    queue, pending = iter(todo), set()
+    queue, pending = iter(sorted(todo, key=lambda it: -it.cost)), set()  # stable: equal costs in plan order
     resources = stage_resources(ctx, stage)
     while True:
         for item in queue:
@@ -548,6 +411,12 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
     a killed build of this host is taken over, and `break_lock` also takes over one held
     from another host. `command` is recorded in the lock (default: this process's command line).
     """
+    with worker_server(stage_modules() if scheduler is None and workers > 1 else None):
+        return _build(recipe, out, workers, until, force, scheduler, break_lock, command)
+
+
+def _build(recipe: Recipe, out: Path, workers: int, until: str | None, force: tuple[str, ...], scheduler: str | None,
+           break_lock: bool, command: str | None) -> Results:
     stages = available_stages()
     for name in (until, *force):
         if name is not None and name not in stages:
