@@ -22,7 +22,8 @@ def stage_resources(ctx, stage) -> dict | None:
 
 
 # Local workers are forked from a server process that has only imported modules (forkserver), never from this
-# one: Embree, BLAS and torch threads do not survive fork reliably. Where there is no fork (Windows), spawned.
+# one, whose Embree, BLAS and torch threads do not survive fork reliably (the server's only threads are OpenBLAS's,
+# which it stops and restarts around a fork itself). Where there is no fork (Windows), spawned.
 WORKER_START = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 
 
