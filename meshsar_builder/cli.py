@@ -14,11 +14,12 @@ from meshsar_builder.pipeline.lock import folder_lock, refuse_if_locked
 
 def cmd_build(args: argparse.Namespace) -> int:
     from meshsar_builder.pipeline import recipe as recipe_mod
-    from meshsar_builder.pipeline.pools import start_worker_server
+    from meshsar_builder.pipeline.pools import server_modules, start_worker_server
     from meshsar_builder.pipeline.runner import build, format_summary, stage_modules
 
-    if args.workers > 1 and not args.scheduler:  # the workers' imports beside the recipe's (1 s of numpy, numba...)
-        start_worker_server(stage_modules())
+    preload = server_modules(args.workers, args.scheduler, stage_modules())
+    if preload:  # the workers' imports beside the recipe's (1 s of numpy, numba...)
+        start_worker_server(preload)
     recipe = recipe_mod.load(args.recipe)
     if args.device is not None:
         recipe = recipe_mod.override(recipe, "radar", "device", args.device, "--device")

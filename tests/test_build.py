@@ -367,26 +367,30 @@ def test_a_pool_starts_the_costliest_items_first_and_equal_ones_in_plan_order(tm
 
 
 def test_local_workers_start_with_the_stages_imported_and_their_pools_environment(monkeypatch):
-    """The workers are forked from a server that imported the stages beside the build's own imports
-    (pools.start_worker_server), so a worker's first item does not wait for them; and a worker has the
-    environment of its pool's creator, not the server's from when the server started."""
+    """The workers of a local pool and of a Dask LocalCluster are forked from a server that imported the
+    stages beside the build's own imports (pools.start_worker_server), so a worker's first item does not wait
+    for them; and a local worker has the environment of its pool's creator, not the server's from when the
+    server started."""
     from meshsar_builder.pipeline.pools import WORKER_START, LocalPool, start_worker_server
 
     if WORKER_START != "forkserver":
         pytest.skip(f"no fork server on this platform: workers are {WORKER_START}ed")
     # In a fresh process: a server already running in this one keeps the preload it started with.
-    code = ("from meshsar_builder.pipeline.pools import LocalPool, start_worker_server\n"
+    loaded = "sorted(m for m in __import__('sys').modules if m.startswith('stages.'))"
+    code = ("from meshsar_builder.pipeline.pools import DaskPool, LocalPool, server_modules, start_worker_server\n"
             "from meshsar_builder.pipeline.runner import stage_modules\n"
             "if __name__ == '__main__':\n"
-            "    start_worker_server(stage_modules())\n"
+            "    start_worker_server(server_modules(1, 'local:1', stage_modules()))\n"
             "    pool = LocalPool(1)\n"
-            "    print(pool.executor.submit(eval, \"sorted(m for m in __import__('sys').modules if m.startswith("
-            "'stages.'))\").result())\n"
+            f"    print(pool.executor.submit(eval, {loaded!r}).result())\n"
+            "    pool.close()\n"
+            "    pool = DaskPool('local:1')\n"
+            f"    print(pool.submit(eval, {loaded!r}).result())\n"
             "    pool.close()\n")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     from meshsar_builder.pipeline.runner import stage_modules
 
-    assert run.stdout.strip() == str(sorted(stage_modules())), run.stdout + run.stderr
+    assert run.stdout.split("\n")[:2] == [str(sorted(stage_modules()))] * 2, run.stdout + run.stderr
     start_worker_server([])  # running before the variable is set, as after a first build in this process
     monkeypatch.setenv("MESHSAR_TEST_VARIABLE", "set after the server started")
     pool = LocalPool(1)

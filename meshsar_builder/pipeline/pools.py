@@ -27,6 +27,14 @@ def stage_resources(ctx, stage) -> dict | None:
 WORKER_START = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 
 
+def server_modules(workers: int, scheduler: str | None, stages: list[str]) -> list[str] | None:
+    """What the workers' server preloads for a build's worker processes on this machine (local workers, or a Dask
+    LocalCluster's, which also import Dask's worker): `stages`, the stage modules; None where there are none."""
+    if scheduler is None:
+        return stages if workers > 1 else None
+    return ["distributed", *stages] if scheduler.startswith("local:") else None
+
+
 def start_worker_server(modules: list[str]) -> None:
     """Start the local workers' server, which imports `modules` beside this process's own imports: every worker
     forked from it starts with them (1.2 s of imports a spawned worker paid itself, on its way to its first item).
@@ -133,7 +141,10 @@ class DaskPool:
             # profiler (a stack sample of the item's thread every 10 ms, under the GIL), the event loops' 20 ms
             # tick and the 0.5 s system monitor. Measured on the pipeline bench's recipe, 2 workers (two runs
             # each): 86.0-86.9 s with Dask's defaults, 81.7-83.2 s without (a register fit 5.85 -> 5.55 s).
+            # Its workers are forked from the build's workers' server too (worker_server), which has imported Dask
+            # and the stages: each worker spawned on its own imported both.
             with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                                  "distributed.worker.multiprocessing-method": WORKER_START,
                                   **QUIET_DASK, **SCHEDULE_WHEN_FREE}):
                 self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                             dashboard_address=None, resources={"GPU": 1})

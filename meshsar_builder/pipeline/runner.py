@@ -49,7 +49,7 @@ from meshsar_builder.pipeline.io import (
     write_json,
 )
 from meshsar_builder.pipeline.lock import folder_lock
-from meshsar_builder.pipeline.pools import make_pool, stage_resources, worker_server
+from meshsar_builder.pipeline.pools import make_pool, server_modules, stage_resources, worker_server
 from meshsar_builder.pipeline.recipe import Recipe
 
 # A full disk, a read-only or unwritable output folder, an exhausted quota.
@@ -411,7 +411,7 @@ def build(recipe: Recipe, out: Path, workers: int = 1, until: str | None = None,
     a killed build of this host is taken over, and `break_lock` also takes over one held
     from another host. `command` is recorded in the lock (default: this process's command line).
     """
-    with worker_server(stage_modules() if scheduler is None and workers > 1 else None):
+    with worker_server(server_modules(workers, scheduler, stage_modules())):
         return _build(recipe, out, workers, until, force, scheduler, break_lock, command)
 
 
