@@ -218,3 +218,22 @@ def test_tracking_bench_tracks_a_builds_ed_frames_through_the_known_cycle(tmp_pa
     assert 0 < mesh["error_mm"] < 0.4 * mesh["motion_mm"]  # far better than leaving the ED mesh where it is
     assert mesh["met"] == (mesh["error_mm"] <= 1.0) and result["met"] == mesh["met"]
     assert json.loads((tmp_path / "out" / "tracking.json").read_text()) == result
+
+
+def test_the_track_stages_chains_are_costed_by_their_frames(tmp_path):
+    """A chain item carries its number of frame fits as its cost (the pool starts the costliest first,
+    runner.Item.cost): a 6-frame subject's chains (3 and 2 fits) before a 3-frame one's (1 and 1)."""
+    from types import SimpleNamespace
+
+    from meshsar_builder.pipeline.runner import Context, Results
+    from stages import track
+
+    remeshed = {f"bv-{subject}-f{k:02d}": {"use": "direct", "source": "bv", "subject": subject, "frame": k,
+                                          "phase": "ED" if k == 1 else ""}
+                for subject, n in (("short", 3), ("long", 6)) for k in range(1, n + 1)}
+    ctx = Context(out=tmp_path, recipe=SimpleNamespace(registration=RegistrationParams(), sources=[]))
+    items = track.plan(ctx, Results(done={"remesh": remeshed}))
+    costs = {item.id: item.cost for item in items}
+    assert costs == {"bv-long-f01-cycle-forward": 3, "bv-long-f01-cycle-backward": 2,
+                     "bv-short-f01-cycle-forward": 1, "bv-short-f01-cycle-backward": 1}, costs
+    assert all(item.cost == len(item.data["chain"]) for item in items)
