@@ -63,9 +63,10 @@ def _kernel():
         return re * step_re - im * step_im, re * step_im + im * step_re
 
     @cuda.jit
-    def echo_kernel(centres, normals, w_re, w_im, edges, positions, inv_k, f0, df, k0, dk, k_min, half_slope, lobe_p,
-                    kappa, po_lobe, po_facet, series_re, series_im, out_re, out_im):
-        """out (M, N): the sum over facets for antenna m = block, frequencies by groups (warps), facets by lanes."""
+    def echo_kernel(centres, normals, w_re, w_im, edges, positions, first, last, inv_k, f0, df, k0, dk, k_min,
+                    half_slope, lobe_p, kappa, po_lobe, po_facet, series_re, series_im, out_re, out_im):
+        """out (M, N): antenna m = block's sum over facets first[m]:last[m], frequencies by groups (warps), facets by
+        lanes."""
         acc_re = cuda.local.array(GROUP, float64)
         acc_im = cuda.local.array(GROUP, float64)
         h_even = cuda.local.array(HALF_TERMS, float64)
@@ -74,14 +75,14 @@ def _kernel():
         part_im = cuda.shared.array((WARPS, WARP), float64)
         m = cuda.blockIdx.x
         warp, lane = cuda.threadIdx.x // WARP, cuda.threadIdx.x % WARP
-        n_facets, n_freqs = centres.shape[0], out_re.shape[1]
+        n_freqs = out_re.shape[1]
         ax, ay, az = positions[m, 0], positions[m, 1], positions[m, 2]
         for base in range(0, n_freqs, WARPS * GROUP):  # the same trips in every warp: they meet at the barriers
             n0 = base + warp * GROUP
             for i in range(GROUP):
                 acc_re[i], acc_im[i] = 0.0, 0.0
             k_start = k0 + n0 * dk
-            for f in range(lane, n_facets if n0 < n_freqs else 0, WARP):
+            for f in range(first[m] + lane, last[m] if n0 < n_freqs else 0, WARP):
                 dx, dy, dz = ax - centres[f, 0], ay - centres[f, 1], az - centres[f, 2]
                 r2 = dx * dx + dy * dy + dz * dz
                 r = math.sqrt(r2)
@@ -181,12 +182,15 @@ def uniform(freqs: np.ndarray) -> bool:
 
 
 def direct_sum(scatterers: np.ndarray, normals: np.ndarray, weights: np.ndarray, edges: np.ndarray | None,
-               positions: np.ndarray, freqs: np.ndarray, radar: RadarParams, index: int = 0) -> np.ndarray:
+               positions: np.ndarray, freqs: np.ndarray, radar: RadarParams, index: int = 0,
+               first: np.ndarray | None = None, last: np.ndarray | None = None) -> np.ndarray:
     """(M, N) complex128: sum_k w_k g(cos theta_km) / R^2 exp(j 2 pi (f_n tau - S tau^2 / 2)) F_k / A_k, on a GPU.
 
     scatterers, normals (K, 3) mm; weights (K,) real or complex; edges (K, 3, 3) corners
     minus centroid for the facet integral, or None for point scatterers; positions (M, 3)
-    mm; freqs (N,) Hz, evenly spaced (uniform); index the CUDA device. echo_chunk's sum, in one launch.
+    mm; freqs (N,) Hz, evenly spaced (uniform); index the CUDA device. first, last (M,) int:
+    antenna m sums the scatterers first[m]:last[m] only (the factorised echo's grids, each
+    with its cluster's items); default all of them. echo_chunk's sum, in one launch.
     """
     if _CUDA_MISSING:
         raise MeshsarError(_CUDA_MISSING)
@@ -200,10 +204,15 @@ def direct_sum(scatterers: np.ndarray, normals: np.ndarray, weights: np.ndarray,
     groups = -(-len(freqs) // GROUP)
     inv_k = 1 / ((f0 + df * np.arange(groups * GROUP)) * to_k)  # whole groups: the kernel's loops have fixed trips
     po_facet = edges is not None
+    m, n = len(positions), len(freqs)
+    first = np.zeros(m, dtype=np.int64) if first is None else np.asarray(first, dtype=np.int64)
+    last = np.full(m, len(weights), dtype=np.int64) if last is None else np.asarray(last, dtype=np.int64)
+    if m == 0 or not np.any(last > first):
+        return np.zeros((m, n), dtype=np.complex128)
     host = [np.ascontiguousarray(a, dtype=np.float64) for a in (
         scatterers, normals, weights.real, weights.imag if np.iscomplexobj(weights) else np.zeros(len(weights)),
-        edges if po_facet else np.zeros((1, 3, 3)), positions, inv_k)]
-    m, n = len(host[5]), len(freqs)
+        edges if po_facet else np.zeros((1, 3, 3)), positions)]
+    host += [np.ascontiguousarray(first), np.ascontiguousarray(last), inv_k]
     with cuda.gpus[index]:
         args = [cuda.to_device(a) for a in host]
         out_re, out_im = cuda.device_array((m, n)), cuda.device_array((m, n))

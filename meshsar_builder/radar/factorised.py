@@ -286,7 +286,18 @@ def _spread_cluster(summed, first_row, columns, node_x, node_y, interp_x, interp
                 p_re[j] = step_re
 
 
-def echo_factorised(parts, grid, freqs, last_on=None):
+def series_sums(points, normals, weights, offsets, positions, first, last, freqs, radar, out, tolerance=None) -> bool:
+    """Add to out (M, N) complex128 antenna m's echo of the items first[m]:last[m] by radar.series' per-pair series
+    (at `tolerance`, default its own); False, out untouched, where a range span is too wide for the series.
+
+    points, normals (K, 3), weights (K,), offsets (K, 3, 3) or None: one part's items (echo_factorised); positions
+    (M, 3) mm. The sums of the factorised echo's grids on the CPU; radar.gpu.device_sums takes the same arguments.
+    """
+    rows = per_pair._kernel_rows(points, normals, weights, offsets)
+    return per_pair._series_echo(rows, positions, first, last, freqs, radar, out=out, tolerance=tolerance) is not None
+
+
+def echo_factorised(parts, grid, freqs, last_on=None, sums=series_sums):
     """The factorised echo on an aperture grid (see above) of one or more parts summed.
 
     parts : tuples (points, normals, weights, offsets, radar) of one kind each: facets
@@ -301,6 +312,9 @@ def echo_factorised(parts, grid, freqs, last_on=None):
     len(i_freq)) complex128, from its own coarse sums on the first grids interpolated onto the
     sub-grid only (a part of point scatterers keeps its own budget there; refining is for facets).
     With the two parts that radar.echo makes, the whole echo keeps its bytes (below).
+
+    sums : what sums the items on the grids (series_sums' arguments and result): the CPU's
+    series, or a device's direct sum (radar.gpu), which never runs out of terms.
     """
     if NUMBA_MISSING:
         raise MeshsarError(NUMBA_MISSING)
@@ -315,7 +329,7 @@ def echo_factorised(parts, grid, freqs, last_on=None):
                                                                  for c, rho, items, nx, ny in clusters]
     half_slope = 0.5 * parts[0][4].slope_hz_per_s if parts[0][4].rvp else 0.0
     columns = np.unique(np.linspace(0, len(freqs) - 1, CHECK_FREQUENCIES).round().astype(np.int64))
-    summing = functools.partial(_summed_on_groups, parts, frame, grid.z0_mm, freqs, half_slope, columns)
+    summing = functools.partial(_summed_on_groups, parts, frame, grid.z0_mm, freqs, half_slope, columns, sums)
     alone = []
 
     def interpolated_alone(summed):  # the last part's own sums, before the others add to them
@@ -336,7 +350,7 @@ def echo_factorised(parts, grid, freqs, last_on=None):
     return whole if last_on is None else (whole, alone[0])
 
 
-def _summed_on_groups(parts, frame, z0_mm, freqs, half_slope, columns, groups, after_last=None):
+def _summed_on_groups(parts, frame, z0_mm, freqs, half_slope, columns, sums, groups, after_last=None):
     """The coarse sums (G, N) complex128 of every part on the groups' grids (rows: each group's nodes in turn) and
     the facets' own sums at the frequencies `columns`, each cluster's with its centre's phase removed, (G, C)
     complex64 (None without facets); (None, None) where a range span is too wide for the series. The last part is
@@ -354,11 +368,9 @@ def _summed_on_groups(parts, frame, z0_mm, freqs, half_slope, columns, groups, a
         counts = np.array([len(items) for items in mine])
         stops = np.cumsum(counts)
         order = np.concatenate(mine)
-        rows = per_pair._kernel_rows(points[order], normals[order], weights[order],
-                                     None if offsets is None else offsets[order])
-        if per_pair._series_echo(rows, grids, np.repeat(stops - counts, sizes), np.repeat(stops, sizes), freqs,
-                                 radar, out=summed,
-                                 tolerance=None if offsets is not None else POINT_SERIES_TOLERANCE) is None:
+        if not sums(points[order], normals[order], weights[order], None if offsets is None else offsets[order], grids,
+                    np.repeat(stops - counts, sizes), np.repeat(stops, sizes), freqs, radar, summed,
+                    None if offsets is not None else POINT_SERIES_TOLERANCE):
             return None, None
         if offsets is not None:
             check = (0 if check is None else check) + (summed[:, columns] - before)
