@@ -312,7 +312,7 @@ def test_a_short_axis_maps_apical_lv_gap_is_meshed_as_myocardium_and_recorded():
     labels[cavity] = STRUCTURES["lv"]
     labels[mask & (z > 12)] = 0  # the basal cut
     labels[mask & (z < -10) & (x**2 + y**2 < 25)] = STRUCTURES["lv"]  # the apical gap through the wall
-    surface = labels_to_surface(labels, affine, ["lv", "myo", "rv"], MeshingParams())
+    surface = labels_to_surface(labels, affine, ["lv", "myo"], MeshingParams())
     lv = surface.labels == STRUCTURES["lv"]
     assert lv.any() and (surface.verts[lv, 2] > 5).all()  # at the base only
     assert (surface.labels[surface.verts[:, 2] < -17] == STRUCTURES["myo"]).all()
@@ -335,3 +335,39 @@ def test_separable_cubic_resampling_is_scipys_map_coordinates(shape, steps, seed
     resampled = resample_cubic(values, axes)
     assert resampled.shape == reference.shape
     np.testing.assert_allclose(resampled, reference, rtol=0, atol=1e-11)
+
+
+def _pools(gap_voxels: int, island: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """An LV pool (radius 10 mm) and a smaller RV pool (9 mm) along x, `gap_voxels` apart (1 mm voxels), and
+    optionally a 2-voxel RV island far off."""
+    labels = np.zeros((70, 40, 40), np.uint8)
+    x, y, z = np.ogrid[:70, :40, :40]
+    labels[(x - 15) ** 2 + (y - 20) ** 2 + (z - 20) ** 2 <= 100] = STRUCTURES["lv"]
+    labels[(x - 35 - gap_voxels) ** 2 + (y - 20) ** 2 + (z - 20) ** 2 <= 81] = STRUCTURES["rv"]
+    if island:
+        labels[66:68, 5, 5] = STRUCTURES["rv"]
+    return labels, np.diag([1.0, 1.0, 1.0, 1.0])
+
+
+def test_a_structure_apart_from_the_rest_is_refused_naming_it_and_an_island_is_recorded():
+    """contour keeps one piece: a structure lying apart (pools without the wall between them) would vanish from
+    the surface, so it is an error with its volume; a touching pair meshes whole, and a small island of a
+    structure is left out and recorded."""
+    labels, affine = _pools(gap_voxels=4)
+    with pytest.raises(InputError, match=r"2 separate pieces.*apart from it lie rv \(3\.\d of 3\.\d ml\)"):
+        labels_to_surface(labels, affine, ["lv", "rv"], MeshingParams(), name="pools.nii.gz")
+    joined = labels.copy()
+    joined[24:41, 17:24, 17:24] = np.where(joined[24:41, 17:24, 17:24] == 0, STRUCTURES["myo"], joined[24:41, 17:24, 17:24])
+    surface = labels_to_surface(joined, affine, ["lv", "myo", "rv"], MeshingParams())
+    volume = trimesh.Trimesh(surface.verts, surface.faces).volume
+    assert volume > 7000 and "pieces_apart_ml" not in surface.repair  # both pools (4.2 and 3.1 ml) and the bar
+    touching, _ = _pools(gap_voxels=0, island=True)
+    surface = labels_to_surface(touching, affine, ["lv", "rv"], MeshingParams())
+    assert surface.repair["pieces_apart_ml"] == {"rv": 0.002}
+    assert {STRUCTURES["lv"], STRUCTURES["rv"]} <= set(np.unique(surface.labels))
+
+
+def test_a_structure_missing_from_the_map_is_refused_naming_it():
+    labels, affine = _pools(gap_voxels=0)
+    with pytest.raises(InputError, match=r"pools.nii.gz: the structures \['myo'\] are missing.*found: \['lv', 'rv'\]"):
+        labels_to_surface(labels, affine, ["lv", "myo", "rv"], MeshingParams(), name="pools.nii.gz")

@@ -198,7 +198,7 @@ def test_a_ring_of_touching_vessels_keeps_its_chambers():
     labels[(np.hypot(X - 4, Y) <= 6) & (Z > 10) & (Z < 30) & (labels == 0)] = S["pa"]
     labels[(np.hypot(X - 8, Y) <= 6) & (Z > 0) & (Z < 12) & (labels == 0)] = S["pa"]
     labels[(labels == S["pa"]) & (X < -1)] = 0
-    surf = labels_to_surface(labels, np.eye(4), list(S)[:3] + ["aorta", "pa"], MeshingParams())
+    surf = labels_to_surface(labels, np.eye(4), ["lv", "rv", "aorta", "pa"], MeshingParams())
     assert closed_genus0(surf)
     cut = {tuple(c["structures"]) for c in surf.repair["contacts_cut"]}
     assert ("aorta", "pa") in cut

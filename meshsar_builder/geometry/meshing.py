@@ -271,12 +271,19 @@ def labels_to_surface(
         axis = int(np.argmin(spans))
         raise InputError(f"{name}: the structures {structures} are one voxel thick along voxel axis {axis} (label map "
                          f"shape {labels.shape}): a single slice has no 3-D surface; mesh a stack of slices")
+    missing = [s for s in structures if not (chosen == STRUCTURES[s]).any()]
+    if missing:
+        present = sorted(k for k, v in STRUCTURES.items() if (labels == v).any())
+        raise InputError(f"{name}: the structures {missing} are missing from the label map (found: {present}); a "
+                         f"surface without them would not be the anatomy asked for: list only the structures every "
+                         f"map has")
     union = ndimage.binary_fill_holes(chosen > 0)
+    pieces = _pieces_apart(union, chosen, affine, structures, params.island_fraction, name)
     plain = contour(iso_grid(union, affine, params, name))
     if is_closed_genus0(*plain)[0]:
         # Already genus 0: no repair, so a surface that needs none is never changed by one.
-        return _surface(*plain, nearest_labels(plain[0], chosen, chosen > 0, affine), {})
-    record: dict = {"euler_before": int(trimesh.Trimesh(*plain, process=False).euler_number)}
+        return _surface(*plain, nearest_labels(plain[0], chosen, chosen > 0, affine), pieces)
+    record: dict = {**pieces, "euler_before": int(trimesh.Trimesh(*plain, process=False).euler_number)}
     # The repair's distance maps need only the heart and a margin, not a CT's whole field of view.
     chosen, affine = _crop(chosen, affine, params.gap_mm + params.wall_mm)
     repaired, steps, gaps, walls = repair_labels(chosen, np.linalg.norm(affine[:3, :3], axis=0), params)
@@ -302,6 +309,36 @@ def labels_to_surface(
     record.update(_repair_figures(chosen, np.where(walls, 0, repaired), handles, gaps, verts, faces, plain, affine, params))
     _check_repair(record, name, params)
     return _surface(verts, faces, nearest_labels(verts, repaired, repaired > 0, affine), record)
+
+
+def _pieces_apart(union: np.ndarray, chosen: np.ndarray, affine: np.ndarray, structures: list[str],
+                  island_fraction: float, name: str) -> dict:
+    """The record of the union's pieces apart from its largest, which the surface leaves out (contour keeps one).
+
+    union : (X, Y, Z) bool, chosen : (X, Y, Z) uint8 canonical ids. Raises InputError when a
+    structure has more than island_fraction of its voxels apart: it does not touch the rest (the
+    LV and RV pools without the myocardium between them), so one closed surface cannot hold it.
+    Smaller pieces are islands, left out and recorded ({"pieces_apart_ml": {structure: ml}}).
+    """
+    pieces, count = ndimage.label(union, structure=np.ones((3, 3, 3)))  # diagonal contacts count as touching
+    if count <= 1:
+        return {}
+    apart = pieces != np.bincount(pieces.ravel())[1:].argmax() + 1
+    ml = abs(np.linalg.det(affine[:3, :3])) / 1000
+    lost, too_much = {}, []
+    for structure in structures:
+        voxels = chosen == STRUCTURES[structure]
+        away = int(np.count_nonzero(voxels & apart))
+        if away:
+            lost[structure] = round(away * ml, 3)
+            if away > island_fraction * np.count_nonzero(voxels):
+                too_much.append(f"{structure} ({away * ml:.1f} of {np.count_nonzero(voxels) * ml:.1f} ml)")
+    if too_much:
+        raise InputError(f"{name}: the structures {structures} form {count} separate pieces, and one closed surface "
+                         f"holds only the largest; apart from it lie {', '.join(too_much)}, more than island_fraction "
+                         f"= {island_fraction} of each: add the structure that joins them (the myocardium between the "
+                         f"LV and RV pools) or mesh them as separate sources")
+    return {"pieces_apart_ml": lost}
 
 
 def _surface(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray, record: dict) -> Surface:
@@ -439,6 +476,8 @@ def _summary(record: dict) -> str:
     contacts = [f"{'-'.join(c['structures'])} {c['voxels']} vox" for c in record.get("contacts_cut", [])]
     handles = [f"{h['kind']} {h['voxels']} vox at {h['position_mm']} ({'/'.join(h['structures'])})" for h in record.get("handles", [])]
     return f"contacts cut: {contacts or 'none'}; handles: {handles or 'none'}"
+
+
 def trim_vessels(labels: np.ndarray, affine: np.ndarray, lengths: dict[str, float], name: str = "label map") -> np.ndarray:
     """Cut each great vessel by a plane `lengths[vessel]` mm from its valve, along its centreline.
 
