@@ -17,6 +17,7 @@ from meshsar_builder.dataset.label_maps import InputWarning, LabelItem, read_lab
 from meshsar_builder.geometry.meshfile import write_ply
 from meshsar_builder.geometry.meshing import labels_to_surface, long_axis_landmarks
 from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import InputError
 from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 
 NAME = "meshes"
@@ -42,6 +43,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
 def run(ctx: Context, item: Item) -> dict:
     d, structures, use, require_affine = item.data
     li = LabelItem.from_json(d)
+    if "index_error" in li.extra:  # what the source's index could not use (label_maps.failed_item)
+        raise InputError(li.extra["index_error"])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InputWarning)
         labels, affine = read_label_map(li.path, li.table, require_affine, t=li.t)

@@ -274,18 +274,59 @@ def test_acdc_reads_predicted_4d_maps_where_present(tmp_path):
     assert index_acdc(tmp_path, "acdc", predicted="")[1].frame == 4  # predictions switched off
 
 
-def test_acdc_predicted_map_faults_are_named(tmp_path):
+def index_errors(items: list[LabelItem]) -> dict[str, str]:
+    """The failed items' ids and errors (label_maps.failed_item)."""
+    return {li.item_id: li.extra["index_error"] for li in items if "index_error" in li.extra}
+
+
+def test_acdc_predicted_map_faults_are_named_as_failed_items_and_the_rest_kept(tmp_path):
     write_acdc(tmp_path, "patient001", [1], ed=1, es=4, nb=6, pred_T=5)
-    with pytest.raises(InputError, match=r"patient001_4d_pred.nii.gz: 5 frames \(T\) .* NbFrame: 6"):
-        index_acdc(tmp_path, "acdc")
+    write_acdc(tmp_path, "patient002", [1, 3], ed=1, es=3, nb=4)
+    items = index_acdc(tmp_path, "acdc")
+    [(name, error)] = index_errors(items).items()
+    assert name == "acdc-patient001-patient001_4d_pred_nii_gz"
+    assert re.search(r"patient001_4d_pred.nii.gz: 5 frames \(T\) .* NbFrame: 6", error)
+    assert summary([li for li in items if li.item_id != name]) == [
+        ("patient001", 1, "ED", "annotated", None), ("patient002", 1, "ED", "annotated", None),
+        ("patient002", 3, "ES", "annotated", None)]
     save_nifti(tmp_path / "patient001" / "patient001_4d_pred.nii.gz", frame_volume(0), AFFINE)
-    with pytest.raises(InputError, match=r"a 3-D predicted label map .* must name its frame"):
-        index_acdc(tmp_path, "acdc")
+    assert "a 3-D predicted label map (predicted = '{subject}_4d_pred.nii*') must name its frame" in \
+        index_errors(index_acdc(tmp_path, "acdc"))[name]
+    (tmp_path / "patient001" / "patient001_4d_pred.nii.gz").write_bytes(b"")  # a copy cut short
+    assert "not a readable NIfTI file" in index_errors(index_acdc(tmp_path, "acdc"))[name]
     # only predictions, no _gt at all: still a patient
     other = tmp_path / "other"
     write_acdc(other, "patient009", [], ed=1, es=2, nb=2, pred_T=2)
     assert summary(index_acdc(other, "acdc")) == [("patient009", 1, "ED", "predicted", 0),
                                                   ("patient009", 2, "ES", "predicted", 1)]
+
+
+def test_acdc_patients_without_a_usable_info_cfg_fail_alone_and_its_name_takes_any_case(tmp_path):
+    for name in ("patient001", "patient002", "patient003", "patient004"):
+        write_acdc(tmp_path, name, [1, 2], ed=1, es=2, nb=3)
+    (tmp_path / "patient002" / "Info.cfg").write_text("ED: 1\nNbFrame: 3\n")
+    (tmp_path / "patient003" / "Info.cfg").rename(tmp_path / "patient003" / "info.cfg")
+    (tmp_path / "patient004" / "Info.cfg").unlink()
+    items = index_acdc(tmp_path, "acdc")
+    errors = index_errors(items)
+    assert sorted(errors) == ["acdc-patient002-Info_cfg", "acdc-patient004-patient004_frame01_gt_nii_gz"]
+    assert errors["acdc-patient002-Info_cfg"].endswith("patient002/Info.cfg: missing 'ES' in Info.cfg")
+    assert "patient004: _gt frames but no Info.cfg" in errors["acdc-patient004-patient004_frame01_gt_nii_gz"]
+    assert [(li.subject, li.frame) for li in items if li.item_id not in errors] == [
+        ("patient001", 1), ("patient001", 2), ("patient003", 1), ("patient003", 2)]
+
+
+def test_the_meshes_stage_fails_a_failed_item_with_its_error(tmp_path):
+    from stages import meshes
+
+    from meshsar_builder.dataset.label_maps import failed_item
+    from meshsar_builder.pipeline.runner import Context, Item
+
+    li = failed_item("acdc", "patient004", tmp_path / "x_gt.nii.gz", "patient004: _gt frames but no Info.cfg")
+    ctx = Context(out=tmp_path, recipe=R.load(MANIFESTS / "acdc.toml"))
+    item = Item(li.item_id, (f"{li.item_id}.ply",), data=(li.to_json(), ("lv",), "direct", False))
+    with pytest.raises(InputError, match="patient004: _gt frames but no Info.cfg"):
+        meshes.run(ctx, item)
 
 
 # --- recipe keys -----------------------------------------------------------------------------------

@@ -17,7 +17,6 @@ import numpy as np
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError
 
-
 # Refuse volumes whose header declares more voxels than this before reading any data.
 MAX_VOXELS = 1024**3 // 2
 # Float label maps (resampled, or written by tools that store floats) are rounded when every
@@ -69,6 +68,13 @@ def item_id(source: str, subject: str, frame: int | None = None, phase: str = ""
     if frame is None:
         return f"{base}-{phase}" if phase else base
     return f"{base}-f{frame:02d}"
+
+
+def failed_item(source: str, subject: str, path: str | Path, error: Exception | str) -> LabelItem:
+    """An item for what a source's index could not use (path and why, in extra["index_error"]): the meshes stage
+    raises its error, so failures.json names it while the rest of the source builds."""
+    return LabelItem(item_id(source, f"{subject}-{Path(path).name}"), source, str(path), subject, {},
+                     extra={"index_error": str(error)})
 
 
 # A 4-D label map holds at most this many frames (a cine cycle has a few dozen).

@@ -13,14 +13,26 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
-
 from meshsar_builder.dataset.frames import (
-    PHASES, Claim, check_frames, compile_frame_regex, expand_claims, read_frame_table, regex_claims)
-from meshsar_builder.dataset.label_maps import InputWarning, LabelItem, item_id, label_map_verdict, n_frames
+    PHASES,
+    Claim,
+    check_frames,
+    compile_frame_regex,
+    expand_claims,
+    read_frame_table,
+    regex_claims,
+)
+from meshsar_builder.dataset.label_maps import (
+    InputWarning,
+    LabelItem,
+    failed_item,
+    item_id,
+    label_map_verdict,
+    n_frames,
+)
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError, RecipeError
 from meshsar_builder.pipeline.recipe import NAME_RE
-
 
 # MM-WHS: 421 occurs in some files for the left atrium.
 MMWHS_TABLE: dict[int, str] = {
@@ -257,60 +269,91 @@ def index_acdc(
     map's T index t is ACDC frame t + 1 (its T must equal NbFrame); a 3-D one names its
     frame as `frameYY`. Their frames are recorded as provenance "predicted", each read
     from its T index; a frame that has a `_gt` map keeps that one (annotated wins).
+
+    What cannot be indexed (a patient's Info.cfg without ED or ES, `_gt` frames in a folder
+    without one, an unreadable or inconsistent predicted map) becomes a failed_item, so the
+    build names it in failures.json and goes on with the rest. Info.cfg is found in any case.
     """
     root = _require_dir(root)
-    patients = _first_n([p.parent for p in root.rglob(f"{subject}/Info.cfg")], limit)
-    if not patients:
+    infos = [p for p in root.rglob(f"{subject}/*") if p.name.lower() == "info.cfg" and p.is_file()]
+    with_info = {p.parent for p in infos}
+    orphans: dict[Path, Path] = {}  # a folder of _gt frames without Info.cfg: its first frame
+    for frame in sorted(root.rglob(f"{subject}/*_frame[0-9][0-9]_gt.nii*")):
+        if frame.parent not in with_info:
+            orphans.setdefault(frame.parent, frame)
+    infos = _first_n(infos, limit)
+    if not infos and not orphans:
         raise InputError(f"{root}: no ACDC patient folders (patientNNN/Info.cfg) found")
-    items = []
-    for pdir in patients:
-        info = parse_info_cfg(pdir / "Info.cfg")
-        ed, es = int(info["ED"]), int(info["ES"])
-        nb = int(info["NbFrame"]) if "NbFrame" in info else None
-        extra = {"group": info.get("Group", ""), "n_frames": nb}
-        frames = sorted(pdir.glob(f"{pdir.name}_frame[0-9][0-9]_gt.nii*"))
-        pred_files = sorted(pdir.glob(predicted.replace("{subject}", pdir.name))) if predicted else []
-        if not frames and not pred_files:
-            also = f" nor predicted label maps ({predicted.replace('{subject}', pdir.name)})" if predicted else ""
-            raise InputError(f"{pdir}: no *_frameYY_gt.nii.gz files{also}")
-        found: dict[int, LabelItem] = {}
-
-        def add(frame: int, path: Path, prov: str, t: int | None = None) -> None:
-            phase = "ED" if frame == ed else "ES" if frame == es else ""
-            found[frame] = LabelItem(
-                item_id(source, pdir.name, frame), source, str(path), pdir.name, ACDC_TABLE,
-                frame=frame, phase=phase, cycle_fraction=None if nb is None else (frame - 1) / nb, provenance=prov,
-                extra=dict(extra), t=t,
-            )
-
-        for f in frames:
-            frame = int(re.search(r"_frame(\d\d)_gt", f.name).group(1))
-            add(frame, f, provenance or ("annotated" if frame in (ed, es) else "predicted"))
-        annotated = set(found)
-        claimed: dict[int, Path] = {}
-        for f in pred_files:
-            if f in frames:
-                continue
-            T = n_frames(f)
-            if T is None:
-                m = re.search(r"frame(\d+)", f.name)
-                if not m:
-                    raise InputError(f"{f}: a 3-D predicted label map (predicted = {predicted!r}) must name its frame "
-                                     f"(frameYY); a 4-D one holds one frame per T index")
-                pairs = [(int(m.group(1)), None)]
-            else:
-                if nb is not None and T != nb:
-                    raise InputError(f"{f}: {T} frames (T) in a predicted 4-D label map, but {pdir.name}/Info.cfg "
-                                     f"has NbFrame: {nb}")
-                pairs = [(t + 1, t) for t in range(T)]
-            for frame, t in pairs:
-                if frame in claimed:
-                    raise InputError(f"{f}: claims {pdir.name} frame {frame}, which {claimed[frame].name} also claims")
-                claimed[frame] = f
-                if frame not in annotated:
-                    add(frame, f, "predicted", t)
-        items += [found[k] for k in sorted(found)]
+    items = [failed_item(source, pdir.name, frame, f"{pdir}: _gt frames but no Info.cfg, so ED and ES are unknown")
+             for pdir, frame in list(orphans.items())[:limit]]
+    for info_path in infos:
+        pdir = info_path.parent
+        try:
+            items += _acdc_patient(pdir, parse_info_cfg(info_path), source, provenance, predicted)
+        except InputError as error:
+            items.append(failed_item(source, pdir.name, info_path, error))
     return items
+
+
+def _acdc_patient(pdir: Path, info: dict[str, str], source: str, provenance: str | None,
+                  predicted: str) -> list[LabelItem]:
+    """The items of one ACDC patient folder (index_acdc), a failed_item for each predicted map it cannot use."""
+    ed, es = int(info["ED"]), int(info["ES"])
+    nb = int(info["NbFrame"]) if "NbFrame" in info else None
+    extra = {"group": info.get("Group", ""), "n_frames": nb}
+    frames = sorted(pdir.glob(f"{pdir.name}_frame[0-9][0-9]_gt.nii*"))
+    pred_files = sorted(pdir.glob(predicted.replace("{subject}", pdir.name))) if predicted else []
+    if not frames and not pred_files:
+        also = f" nor predicted label maps ({predicted.replace('{subject}', pdir.name)})" if predicted else ""
+        raise InputError(f"{pdir}: no *_frameYY_gt.nii.gz files{also}")
+    found: dict[int, LabelItem] = {}
+    failed = []
+
+    def add(frame: int, path: Path, prov: str, t: int | None = None) -> None:
+        phase = "ED" if frame == ed else "ES" if frame == es else ""
+        found[frame] = LabelItem(
+            item_id(source, pdir.name, frame), source, str(path), pdir.name, ACDC_TABLE,
+            frame=frame, phase=phase, cycle_fraction=None if nb is None else (frame - 1) / nb, provenance=prov,
+            extra=dict(extra), t=t,
+        )
+
+    for f in frames:
+        frame = int(re.search(r"_frame(\d\d)_gt", f.name).group(1))
+        add(frame, f, provenance or ("annotated" if frame in (ed, es) else "predicted"))
+    annotated = set(found)
+    claimed: dict[int, Path] = {}
+    for f in pred_files:
+        if f in frames:
+            continue
+        try:
+            pairs = _predicted_frames(f, nb, predicted, pdir.name)
+            twice = [frame for frame, _ in pairs if frame in claimed]
+            if twice:
+                raise InputError(f"{f}: claims {pdir.name} frame {twice[0]}, which {claimed[twice[0]].name} also "
+                                 f"claims")
+        except InputError as error:
+            failed.append(failed_item(source, pdir.name, f, error))
+            continue
+        for frame, t in pairs:
+            claimed[frame] = f
+            if frame not in annotated:
+                add(frame, f, "predicted", t)
+    return [found[k] for k in sorted(found)] + failed
+
+
+def _predicted_frames(path: Path, nb: int | None, predicted: str, patient: str) -> list[tuple[int, int | None]]:
+    """(ACDC frame, T index or None) of each frame a predicted label map holds; InputError when it cannot say."""
+    T = n_frames(path)
+    if T is None:
+        m = re.search(r"frame(\d+)", path.name)
+        if not m:
+            raise InputError(f"{path}: a 3-D predicted label map (predicted = {predicted!r}) must name its frame "
+                             f"(frameYY); a 4-D one holds one frame per T index")
+        return [(int(m.group(1)), None)]
+    if nb is not None and T != nb:
+        raise InputError(f"{path}: {T} frames (T) in a predicted 4-D label map, but {patient}/Info.cfg has "
+                         f"NbFrame: {nb}")
+    return [(t + 1, t) for t in range(T)]
 
 
 def index_nifti(
