@@ -14,6 +14,7 @@ from meshsar_builder.geometry.meshing import (
     MeshingParams,
     is_closed_genus0,
     labels_to_surface,
+    long_axis_landmarks,
     resample_cubic,
     signed_distance,
     trim_vessels,
@@ -371,3 +372,24 @@ def test_a_structure_missing_from_the_map_is_refused_naming_it():
     labels, affine = _pools(gap_voxels=0)
     with pytest.raises(InputError, match=r"pools.nii.gz: the structures \['myo'\] are missing.*found: \['lv', 'rv'\]"):
         labels_to_surface(labels, affine, ["lv", "myo", "rv"], MeshingParams(), name="pools.nii.gz")
+
+
+def test_long_axis_landmarks_find_the_apex_whichever_way_the_slices_run():
+    """A half prolate spheroid LV (not the phantom; base plane at z = 40 mm, epicardial apex at z = -30) in 5 mm
+    slices: its apex and base come out the same for either sign of the slice normal and either slice order."""
+    i, j, k = np.meshgrid(np.arange(30), np.arange(30), np.arange(20), indexing="ij")
+    affine = np.diag([2.0, 2.0, 5.0, 1.0])
+    affine[:3, 3] = [-29.0, -29.0, -50.0]
+    x, y, z = (index * step + origin for index, step, origin in zip((i, j, k), (2.0, 2.0, 5.0), affine[:3, 3]))
+    outer = (x**2 + y**2) / 20**2 + (z - 40) ** 2 / 70**2 <= 1
+    inner = (x**2 + y**2) / 14**2 + (z - 40) ** 2 / 62**2 <= 1
+    labels = np.where(inner, STRUCTURES["lv"], np.where(outer, STRUCTURES["myo"], 0)).astype(np.uint8)
+    labels[z > 40] = 0
+    flipped = np.array(affine)
+    flipped[:3, 2] = -affine[:3, 2]
+    flipped[:3, 3] = affine[:3, 3] + 19 * affine[:3, 2]  # the last slice first: the same world
+    for lab, aff in ((labels, affine), (labels[:, :, ::-1], flipped)):
+        for sign in (1, -1):
+            apex, base = long_axis_landmarks(lab, aff, sign * aff[:3, 2])
+            assert np.allclose(apex[:2], 0, atol=1.0) and apex[2] == pytest.approx(-30, abs=5)
+            assert base == pytest.approx(-40, abs=0.1)  # the basal slice at z = 40, along the axis toward the apex

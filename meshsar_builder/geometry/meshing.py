@@ -556,16 +556,22 @@ def long_axis_landmarks(labels: np.ndarray, affine: np.ndarray, axis: np.ndarray
     """Apex and base-plane position of the LV of a canonical label map, for motion over a cycle.
 
     labels : (X, Y, Z) uint8 canonical ids, affine : (4, 4) voxel -> RAS mm, axis : (3,) the long
-    axis toward the apex (for a short-axis stack, its slice normal).
+    axis, either way (for a short-axis stack, its slice normal, whose sign is the file's slice
+    order): it is turned toward the apex, the end of the LV (blood and wall) farther from its
+    centroid, since the ventricle narrows to the apex (a half-ellipsoid's centroid lies 3/8 of
+    its length from the base).
     Returns apex (3,) RAS mm, the mean of the myocardial voxels within 1 mm (along the axis) of
-    the most apical one, and base (float) mm along the axis, the most basal LV voxel (blood or
-    wall). Voxel centres: both are quantised to the voxel size along the axis.
+    the most apical one, and base (float) mm along the axis toward the apex, the most basal LV
+    voxel (blood or wall). Voxel centres: both are quantised to the voxel size along the axis.
     """
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     myo = np.argwhere(labels == STRUCTURES["myo"]) @ affine[:3, :3].T + affine[:3, 3]
     lv = np.argwhere(np.isin(labels, (STRUCTURES["myo"], STRUCTURES["lv"]))) @ affine[:3, :3].T + affine[:3, 3]
     if not len(myo):
         raise InputError("long-axis landmarks: no LV myocardium in the label map")
+    along = lv @ axis
+    if along.max() - along.mean() < along.mean() - along.min():
+        axis = -axis
     depth = myo @ axis
     return myo[depth >= depth.max() - 1.0].mean(axis=0), float((lv @ axis).min())
 
