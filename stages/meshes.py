@@ -85,4 +85,6 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 7: a thick-slice stack that cuts the shape ends flat at its last slice's face (meshing._cut_flat).
 # Version 8: that only with [meshing] flat_ends = true (default false: rounded, as version 6).
 # Version 9: flat_ends on by default again: with track v15's ring points the flat bases track as well as rounded ones.
-STAGE = Stage(name=NAME, version=9, plan=plan, run=run)
+# Version 10: a structure missing from the map or lying apart from the rest fails the item (meshing._pieces_apart);
+# the landmarks' long axis turned toward the apex by the ventricle's shape, not by the file's slice order.
+STAGE = Stage(name=NAME, version=10, plan=plan, run=run)
