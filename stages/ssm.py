@@ -44,6 +44,11 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     registered = results.of("register")
     if not registered:
         return []
+    if len(registered) < 2 or not next(iter(registered.values()))["final"]:
+        # The rounds stopped short of their template: one failed item says why, not every item a missing file.
+        why = (f"the shape model needs at least 2 registered subjects, and registration kept {len(registered)} "
+               f"({', '.join(sorted(registered))}); failures.json names the fits it rejected")
+        return [Item("model", ("model.npz",), params=dataclasses.asdict(ctx.recipe.ssm), data={"refused": why})]
     template = str(ctx.stage_dir("register") / "template.ply")
     inputs = (template, *(str(ctx.stage_dir("register") / f"{i}.ply") for i in registered))
     params = dataclasses.asdict(ctx.recipe.ssm)
@@ -93,6 +98,8 @@ def _built_model(inputs: tuple[tuple[str, str], ...], variance: float, procruste
 
 def run(ctx: Context, item: Item) -> dict:
     params, folder = ctx.recipe.ssm, ctx.stage_dir(NAME)
+    if "refused" in item.data:
+        raise MeshError(item.data["refused"])
     model, shapes = _model(ctx, item)
     if item.id.startswith("specificity/"):  # a share of the draws: every items-th draw per mode count
         part = int(item.id.rsplit("/", 1)[1])

@@ -294,3 +294,21 @@ def test_the_stage_lists_its_longest_items_first(tmp_path):
     ids = [item.id for item in stage.plan(Context(out=tmp_path, recipe=recipe), results)]
     parts = [f"specificity/{c}" for c in range(recipe.ssm.specificity_items)]
     assert ids == [*parts, "model", "samples/0", "samples/1"]
+
+
+def test_a_registration_that_kept_fewer_than_two_fits_fails_the_model_saying_why(tmp_path):
+    """The rounds stop when fewer than 2 fits are left, before a template: the ssm stage plans one item that fails
+    naming the fits kept, not every item on a missing template file."""
+    from types import SimpleNamespace
+
+    from meshsar_builder.geometry.ssm import SSMParams
+    from meshsar_builder.pipeline.runner import Context, Results
+    from stages import ssm
+
+    ctx = Context(out=tmp_path, recipe=SimpleNamespace(ssm=SSMParams(), seed=0))
+    kept = {"round0/ct_1001": {"final": False, "fit": {}, "subject": "ct_1001", "source": "mmwhs"}}
+    [item] = ssm.plan(ctx, Results(done={"register": kept}))
+    with pytest.raises(MeshError, match=r"at least 2 registered subjects, and registration kept 1 \(round0/ct_1001\)"):
+        ssm.run(ctx, item)
+    both = {f"ct_{n}": {"final": True, "fit": {}, "subject": f"ct_{n}", "source": "mmwhs"} for n in (1001, 1002)}
+    assert len(ssm.plan(ctx, Results(done={"register": both}))) > 1
