@@ -413,3 +413,62 @@ def test_noise_alone_draws_no_depth():
     assert (intensity > 0.1).mean() > 0.9  # the noise is displayed...
     assert (depth != 0).mean() < 1e-3  # ...but not taken for a surface
     assert (volume_images(noise, freqs, 300.0, images)[1] != 0).mean() > 0.9  # without the noise level it would be
+
+
+def _broken(case: str):
+    """(verts, faces) of a 30 mm icosphere with one defect."""
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=30.0)
+    verts, faces = np.array(sphere.vertices), np.array(sphere.faces)
+    if case == "nan":
+        verts[7, 1] = np.nan
+    elif case == "index":
+        faces[3, 2] = len(verts)
+    elif case == "negative":
+        faces[3, 2] = -1
+    elif case == "quads":
+        faces = np.c_[faces, faces[:, :1]]
+    elif case == "empty":
+        faces = faces[:0]
+    elif case == "duplicate":
+        faces = np.r_[faces, faces[:5, ::-1]]  # the same triangles, wound the other way
+    elif case == "inward":
+        faces = faces[:, ::-1]
+    elif case == "behind":
+        verts = verts + 300.0 * RP.view_frame("left")[2]  # its centre on the left aperture's plane
+    return verts, faces
+
+
+@pytest.mark.parametrize("case, message", [
+    ("nan", r"verts: 1 vertices have non-finite coordinates \(the first: vertex 7\)"),
+    ("index", r"faces: vertex indices must lie in \[0, 162\), got 0 to 162"),
+    ("negative", r"got -1 to 161"),
+    ("quads", r"faces: must be \(m, 3\) integer vertex indices \(triangles\), got int64 \(320, 4\)"),
+    ("empty", r"faces: the mesh has no faces"),
+    ("duplicate", r"faces: 5 faces repeat another face's three vertices"),
+    ("inward", r"faces: wound inward \(the closed surface encloses -1\d\d\.\d ml\)"),
+    ("behind", r"reaches 330\.0 mm toward the left aperture, whose plane lies at z0_mm = 300\.0 mm"),
+])
+def test_a_mesh_the_radar_cannot_simulate_is_refused_naming_the_problem(case, message):
+    """Each of these gave a plausible-looking sample before (a NaN vertex: no speckle; inward faces: a blank image;
+    a duplicate: its echo twice; behind the aperture: 63x the power), or an error deep in numpy."""
+    radar = RP.RadarParams(aperture=(8, 8), step_mm=20.0, n_samples=16, echo_decimation=(1, 1, 1),
+                           loss_decimation=(1, 1, 1))
+    verts, faces = _broken(case)
+    with pytest.raises(ValueError, match=message):
+        RR.render_sample(verts, faces, radar, ImageParams(size=16), np.random.default_rng(0))
+    with pytest.raises(ValueError, match=message):
+        RR.specular_loss_echo(verts, faces, radar)
+
+
+def test_a_range_window_reaching_behind_the_aperture_and_an_open_surface():
+    """z0 within fov / 2 is refused; an open surface (no winding to judge) and the sphere itself are simulated."""
+    radar = RP.RadarParams(aperture=(8, 8), step_mm=20.0, n_samples=16, echo_decimation=(1, 1, 1),
+                           loss_decimation=(1, 1, 1), views=("anterior",))
+    verts, faces = _broken("none")
+    with pytest.raises(ValueError, match=r"z0_mm: the range slices span z0 \+- fov_mm / 2 = 70\.0 \+- 80\.0 mm"):
+        RR.render_sample(verts, faces, dataclasses.replace(radar, z0_mm=70.0), ImageParams(size=16),
+                         np.random.default_rng(0))
+    front = faces[(verts[faces].mean(axis=1) @ RP.view_frame("anterior")[2]) > 0]
+    for kept in (faces, front):
+        out = RR.render_sample(verts, kept, radar, ImageParams(size=16), np.random.default_rng(0))
+        assert out["views"][0]["visible_facets"] > 0 and out["views"][0]["signal_power"] > 0

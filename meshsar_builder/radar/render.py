@@ -22,6 +22,7 @@ from meshsar_builder.radar.params import (
     frequencies,
     grid_indices,
     probe_points,
+    view_frame,
 )
 from meshsar_builder.radar.visibility import embree_intersector, facet_geometry, scatterer_points, visibility
 
@@ -55,14 +56,52 @@ def _view_signal(tri, points, diffuse, vis, radar: RadarParams, view: str, freqs
             len(lit[2]))
 
 
+def check_mesh(verts: np.ndarray, faces: np.ndarray, radar: RadarParams) -> None:
+    """ValueError naming what makes a mesh one the radar cannot simulate, where it would give silent garbage.
+
+    verts : (n, 3) float mm, heart frame; faces : (m, 3) int. Refused: non-finite vertices
+    (a NaN drops its facets, the diffuse part and the rays' bounds), indices out of range,
+    no faces, a face repeating another's vertices (a coplanar copy does not shadow it, so
+    both echo), a closed surface wound inward (it faces away from every antenna: a blank
+    sample) and a vertex at or behind a view's aperture plane (the 1 / R^2 law and the
+    imaging assume targets in front of it).
+    """
+    if verts.ndim != 2 or verts.shape[1] != 3:
+        raise ValueError(f"verts: shape must be (n, 3), got {verts.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise ValueError(f"faces: must be (m, 3) integer vertex indices (triangles), got {faces.dtype} {faces.shape}")
+    if not len(faces):
+        raise ValueError("faces: the mesh has no faces")
+    if faces.min() < 0 or faces.max() >= len(verts):
+        raise ValueError(f"faces: vertex indices must lie in [0, {len(verts)}), got {faces.min()} to {faces.max()}")
+    bad = ~np.isfinite(verts).all(axis=1)
+    if bad.any():
+        raise ValueError(f"verts: {int(bad.sum())} vertices have non-finite coordinates (the first: vertex "
+                         f"{int(np.flatnonzero(bad)[0])})")
+    _, counts = np.unique(np.sort(faces, axis=1), axis=0, return_counts=True)
+    if (counts > 1).any():
+        raise ValueError(f"faces: {int((counts - 1).sum())} faces repeat another face's three vertices; each copy "
+                         f"would add its echo again")
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    if mesh.is_watertight and mesh.volume < 0:
+        raise ValueError(f"faces: wound inward (the closed surface encloses {mesh.volume / 1000:.1f} ml); DESIGN "
+                         f"section 4 wants them counter-clockwise seen from outside")
+    for view in radar.views:
+        reach = float((verts @ view_frame(view)[2]).max())
+        if reach >= radar.z0_mm:
+            raise ValueError(f"verts: the mesh reaches {reach:.1f} mm toward the {view} aperture, whose plane lies at "
+                             f"z0_mm = {radar.z0_mm} mm: every vertex must lie in front of every aperture")
+
+
 def specular_loss_echo(verts: np.ndarray, faces: np.ndarray, radar: RadarParams) -> np.ndarray:
     """The noise-free echo (V, Lx, Ly, Lf) complex64 of a mesh's specular part on loss_grid(radar), as render_sample
     computes echo_clean (the full echo sub-sampled), with no diffuse part: `meshsar bench radar-loss` scans
     candidate meshes with it (facet "random" would draw its points from a generator seeded 0).
 
-    verts : (n, 3) float mm, heart frame; faces : (F, 3) int.
+    verts : (n, 3) float mm, heart frame; faces : (F, 3) int; ValueError as check_mesh says.
     """
     verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces)
+    check_mesh(verts, faces, radar)
     points = scatterer_points(verts, faces, radar.facet, np.random.default_rng(0))
     intersector = embree_intersector(verts, faces)
     keep_loss = np.ix_(*grid_indices(radar, radar.loss_decimation))
@@ -142,9 +181,14 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
 
     radar.device picks where each view's echo and imaging run (view_functions); the noise
     is drawn here on the CPU from rng either way, so a CUDA build differs from a CPU
-    build only by floating-point rounding.
+    build only by floating-point rounding. ValueError for a mesh check_mesh refuses, or a z0_mm
+    within fov_mm / 2 (range slices behind the aperture).
     """
     verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces)
+    check_mesh(verts, faces, radar)
+    if radar.z0_mm <= images.fov_mm / 2:
+        raise ValueError(f"z0_mm: the range slices span z0 +- fov_mm / 2 = {radar.z0_mm} +- {images.fov_mm / 2} mm, "
+                         f"which reaches behind the aperture: z0_mm must exceed fov_mm / 2")
     tri = verts[faces]
     areas = facet_geometry(verts, faces)[2]
     points = scatterer_points(verts, faces, radar.facet, rng)
