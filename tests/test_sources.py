@@ -311,3 +311,34 @@ def test_shape_model_example_builds_end_to_end(tmp_path, monkeypatch):
     assert sample.meta["provenance"] == "shape_model" and sample.meta["subset"] == "ssm"
     assert sample.meta["shape_model"]["sha256"]["modes"] == sha256_file(ATLAS_FILES["modes"])
     assert set(np.unique(sample.vert_labels)) == {STRUCTURES["lv"], STRUCTURES["rv"]}
+
+
+def _eight_bit_image_and_its_labels() -> tuple[np.ndarray, np.ndarray]:
+    """An MR-like 8-bit image (a bright pool in a dimmer wall on a dark field, smoothed, with noise) and a label map of
+    the same scene with 40 labels (a parcellated wall), each at most 256 values."""
+    x, y, z = np.meshgrid(*(np.linspace(-1, 1, 40),) * 3, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    rng = np.random.default_rng(0)
+    image = np.where(r < 0.4, 200.0, np.where(r < 0.6, 110.0, 15.0)) + rng.normal(0, 12, r.shape)
+    image = np.clip(image, 0, 255).astype(np.uint8)
+    labels = np.where(r < 0.4, 3, 0).astype(np.uint8)
+    wall = (r >= 0.4) & (r < 0.6)
+    labels[wall] = 10 + (np.degrees(np.arctan2(y, x))[wall] + 180).astype(int) // 9  # 40 sectors
+    return image, labels
+
+
+def test_an_eight_bit_image_is_told_from_a_label_map_by_its_texture(tmp_path):
+    """An 8-bit image has at most 256 values, as a label map may: its voxels vary from neighbour to neighbour where a
+    label map's are uniform. Skipped by a folder's scan, refused when named; the parcellated map stays a label map."""
+    image, labels = _eight_bit_image_and_its_labels()
+    assert 32 < len(np.unique(image)) <= 256 and len(np.unique(labels)) == 42
+    save_nifti(tmp_path / "data" / "s1_image.nii.gz", image)
+    save_nifti(tmp_path / "data" / "s1_gt.nii.gz", labels)
+    with pytest.warns(InputWarning, match=r"skipped 1 file.*s1_image.nii.gz \(\d+ distinct values that vary from voxel"):
+        items = index_nifti(tmp_path / "data", "own", {"lv": 3})
+    assert [Path(i.path).name for i in items] == ["s1_gt.nii.gz"]
+    with pytest.raises(InputError, match=r"s1_image.nii.gz: \d+ distinct values that vary .* an image rather than"):
+        read_label_map(tmp_path / "data" / "s1_image.nii.gz", {3: "lv"})
+    with pytest.warns(InputWarning, match="label values with no mapping"):  # the wall's 40 parcels
+        labels_read, _ = read_label_map(tmp_path / "data" / "s1_gt.nii.gz", {3: "lv"})
+    assert (labels_read == STRUCTURES["lv"]).sum() == (labels == 3).sum()

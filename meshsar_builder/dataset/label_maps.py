@@ -24,6 +24,11 @@ MAX_VOXELS = 1024**3 // 2
 ROUND_TOLERANCE = 1e-3
 # A label map has a few dozen values at most; an intensity image (CT, MR) has thousands.
 MAX_LABEL_VALUES = 256
+# An 8-bit image has at most 256 values too; its texture tells it apart (image_like): a label map's regions are
+# uniform, so along its finest axis few neighbouring voxels differ (0.07-0.13 of the pairs not both background in
+# two real CT maps and ACDC-style maps), where an image's noise makes most of them differ.
+IMAGE_VALUES = 32
+IMAGE_TEXTURE = 0.5
 
 
 class InputWarning(UserWarning):
@@ -165,7 +170,7 @@ def _load_data(path: Path, img: nib.Nifti1Image, t: int | None = None) -> tuple[
 def label_map_verdict(path: str | Path) -> str:
     """Why a readable NIfTI file is not a label map ('' when it may be one, or cannot be read:
     the loader then names the problem). Judged by content: more than MAX_LABEL_VALUES distinct
-    values (an intensity image)."""
+    values, or an image's texture (image_like: an 8-bit image)."""
     path = Path(path)
     try:
         img, _ = _read_header(path)  # refuses oversized headers before any data is read
@@ -173,7 +178,25 @@ def label_map_verdict(path: str | Path) -> str:
     except Exception:  # noqa: BLE001 (any unreadable file stays indexed: read_label_map names its problem)
         return ""
     n = len(np.unique(data))
-    return f"{n} distinct values, an image rather than a label map" if n > MAX_LABEL_VALUES else ""
+    return f"{n} distinct values, an image rather than a label map" if n > MAX_LABEL_VALUES else image_like(data, n)
+
+
+def image_like(data: np.ndarray, count: int) -> str:
+    """Why a volume (X, Y, Z[, T]) of `count` distinct values is an image, not a label map ('' when it may be one):
+    more than IMAGE_VALUES values, and along every axis more than IMAGE_TEXTURE of the neighbouring voxel pairs (not
+    both 0) differ."""
+    if count <= IMAGE_VALUES:
+        return ""
+    shares = []
+    for axis in range(3):
+        a, b = np.moveaxis(data, axis, 0)[:-1], np.moveaxis(data, axis, 0)[1:]
+        either = np.count_nonzero((a != 0) | (b != 0))
+        shares.append(np.count_nonzero(a != b) / either if either else 0.0)
+    if min(shares) <= IMAGE_TEXTURE:
+        return ""
+    return (f"{count} distinct values that vary from voxel to voxel (along every axis at least "
+            f"{min(shares):.0%} of neighbouring voxels differ, where a label map's regions are uniform): an image "
+            f"rather than a label map")
 
 
 def read_label_map(
@@ -225,6 +248,9 @@ def read_label_map(
         raise InputError(f"{path}: unsupported label data type {data.dtype}")
     data = data.astype(np.int64, copy=False)
     present, counts = np.unique(data, return_counts=True)
+    why = image_like(data, len(present))
+    if why:
+        raise InputError(f"{path}: {why}")
     lut_keys = np.array(sorted(table), dtype=np.int64)
     lut_vals = np.array([STRUCTURES[table[k]] for k in lut_keys], dtype=np.uint8)
     known = np.isin(present, lut_keys)
