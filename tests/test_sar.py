@@ -206,3 +206,30 @@ def test_focus_is_the_naive_sum_on_grids_it_has_not_met(nx, ny, step, size, fov)
     d_mm = S.range_slices(radar.z0_mm, fov, freqs)
     truth = naive_focus(echo, freqs, x_mm, y_mm, u_mm, v_mm, d_mm)
     assert np.linalg.norm(S.focus(echo, freqs, x_mm, y_mm, u_mm, v_mm, d_mm) - truth) <= 1e-5 * np.linalg.norm(truth)
+
+
+def test_depth_detection_takes_the_noise_rms_at_each_peaks_range():
+    """Noise whose RMS changes with range, as a finite aperture's noise image does (0.8-1.27 of the whole at the
+    defaults; 0.6-1.6 here, so that one image shows it): against
+    the whole volume's RMS the strong slices' noise draws false depths; against each slice's own RMS noise passes
+    as rarely as Rayleigh's law says (exp(-10^1.2) = 1.3e-7 a sample); a target 20 dB above its slice's noise is kept."""
+    from meshsar_builder.radar.imaging import DETECTION_MARGIN_DB, ImageParams, range_slices, volume_images
+    from meshsar_builder.radar.params import RadarParams, frequencies
+
+    radar, images = RadarParams(), ImageParams(size=128)
+    freqs = frequencies(radar)
+    d = range_slices(radar.z0_mm, images.fov_mm, freqs)
+    rms = np.linspace(1.6, 0.6, len(d))  # (S,)
+    rng = np.random.default_rng(0)
+    shape = (len(d), 128, 128)
+    noise = (rng.normal(size=shape) + 1j * rng.normal(size=shape)) / np.sqrt(2) * rms[:, None, None]
+    volume = noise.copy()
+    volume[-3, 10, 10] = 10 ** (20 / 20) * rms[-3]  # a weak target at a quiet range
+    volume[len(d) // 4, 40:44, 40:44] = 30.0  # the image's peak, 30 dB over the noise: inside the intensity floor
+    whole = float(np.sqrt(np.mean(np.abs(noise) ** 2)))
+    depth = {name: volume_images(volume.astype(np.complex64), freqs, radar.z0_mm, images, level)[1]
+             for name, level in (("whole", whole), ("slices", rms))}
+    assert DETECTION_MARGIN_DB == 12.0  # the rates above
+    false = {name: int(np.count_nonzero(image)) - 17 for name, image in depth.items()}  # less the 16 + 1 targets
+    assert false["slices"] <= 2 and false["whole"] >= 10, false  # measured 0 and 18
+    assert depth["slices"][10, 10] != 0 and depth["slices"][41, 41] != 0

@@ -223,12 +223,13 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         sigma, floor_db, image_noise = 0.0, None, 0.0
         if noisy:
             noise_volume = volume_of(noise, freqs, x_mm, y_mm, radar.z0_mm, images)
-            noise_rms = float(np.sqrt(np.mean(np.abs(noise_volume) ** 2)))
+            slice_rms = np.sqrt(np.mean(np.abs(noise_volume.astype(np.complex128)) ** 2, axis=(1, 2)))  # (S,)
+            noise_rms = float(np.sqrt(np.mean(slice_rms**2)))
             sigma = noise_scale(signal_power, peak, noise_rms, radar)
             if sigma > 0:
                 volume = volume + np.complex64(sigma) * noise_volume
-                image_noise = sigma * noise_rms
-                floor_db = 20 * math.log10(peak / image_noise) if peak > 0 else None
+                image_noise = sigma * slice_rms  # the depth's detection test takes it at each peak's range
+                floor_db = 20 * math.log10(peak / (sigma * noise_rms)) if peak > 0 else None
         sar.append(volume_images(volume, freqs, radar.z0_mm, images, image_noise))
         look = view_appearance(sar[-1], surface_depth(verts, faces, view, images, intersector), images)
         t3 = time.perf_counter()
