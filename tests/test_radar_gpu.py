@@ -403,9 +403,17 @@ def test_a_local_dask_cluster_can_take_gpu_items_and_keeps_the_allocators_defaul
 
     from meshsar_builder.pipeline.pools import DaskPool
 
+    import multiprocessing.forkserver
+
     # As in a `meshsar build` process: a Dask cluster started earlier in this test process has
     # written its nanny's variables into os.environ, and spawned workers inherit them.
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    # The workers fork from the workers' server, which has the environment it started with: one that an earlier test
+    # started while a default Dask cluster's variable was in os.environ would hand it on. A build stops its server at
+    # its end (pools.worker_server); here the pool starts its own.
+    stop = getattr(multiprocessing.forkserver._forkserver, "_stop", None)
+    if stop is not None:
+        stop()
     pool = DaskPool("local:1")
     try:
         assert [have.get("GPU") for have in pool.worker_resources().values()] == [1]

@@ -290,7 +290,8 @@ def test_the_stage_lists_its_longest_items_first(tmp_path):
     from meshsar_builder.pipeline.runner import Context, Results
 
     recipe = R.override(R.load(MANIFESTS / "smoke.toml"), "ssm", "samples_per_item", 2, "test")
-    results = Results(done={"register": {f"s{i}": {"fit": {}, "subject": f"s{i}", "source": "x"} for i in range(3)}})
+    fits = {f"s{i}": {"fit": {}, "final": True, "subject": f"s{i}", "source": "x"} for i in range(3)}
+    results = Results(done={"register": fits})
     ids = [item.id for item in stage.plan(Context(out=tmp_path, recipe=recipe), results)]
     parts = [f"specificity/{c}" for c in range(recipe.ssm.specificity_items)]
     assert ids == [*parts, "model", "samples/0", "samples/1"]
