@@ -212,7 +212,8 @@ def test_depth_detection_takes_the_noise_rms_at_each_peaks_range():
     """Noise whose RMS changes with range, as a finite aperture's noise image does (0.8-1.27 of the whole at the
     defaults; 0.6-1.6 here, so that one image shows it): against
     the whole volume's RMS the strong slices' noise draws false depths; against each slice's own RMS noise passes
-    as rarely as Rayleigh's law says (exp(-10^1.2) = 1.3e-7 a sample); a target 20 dB above its slice's noise is kept."""
+    as rarely as Rayleigh's law says (exp(-10^1.2) = 1.3e-7 a sample); a target 20 dB above its slice's noise is
+    kept."""
     from meshsar_builder.radar.imaging import DETECTION_MARGIN_DB, ImageParams, range_slices, volume_images
     from meshsar_builder.radar.params import RadarParams, frequencies
 
