@@ -148,10 +148,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     )
 
     try:
-        seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else (RADAR_SEEDS if args.radar
-                                                                                 else (0, 1, 2))
-    except ValueError:
-        print(f"error: --seeds: expected comma-separated integers, got {args.seeds!r}", file=sys.stderr)
+        seeds = tuple(seed_number(s) for s in args.seeds.split(",")) if args.seeds else (
+            RADAR_SEEDS if args.radar else (0, 1, 2))
+    except (ValueError, argparse.ArgumentTypeError):
+        print(f"error: --seeds: expected comma-separated integers >= 0, got {args.seeds!r}", file=sys.stderr)
         return 2
     try:
         weights = tuple(float(w) for w in args.radar_weights.split(",")) if args.radar_weights else RADAR_WEIGHTS
@@ -177,6 +177,14 @@ def cmd_predict(args: argparse.Namespace) -> int:
     print(predict(args.run, args.data, args.split, args.subset, args.images, args.device, args.out, args.checkpoint,
                   args.gallery, refine=args.refine))
     return 0
+
+
+def seed_number(text: str) -> int:
+    """A seed argument: an integer >= 0 (numpy's seed sequences take no negative one)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a seed is an integer >= 0, got {value}")
+    return value
 
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
@@ -211,7 +219,7 @@ def parser() -> argparse.ArgumentParser:
     s = sub.add_parser("splits", help="write splits/seed-S.json from the index (shards are not read)",
                        epilog="docs: docs/data.md (splits)")
     s.add_argument("out", help="built dataset folder")
-    s.add_argument("--seed", type=int, required=True)
+    s.add_argument("--seed", type=seed_number, required=True)
     s.add_argument("--ratios", help="e.g. train=0.8,test=0.2 (default)")
     s.set_defaults(func=cmd_splits)
     v = sub.add_parser("verify", help="check every shard's digest and arrays, the index and the splits",

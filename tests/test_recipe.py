@@ -41,6 +41,7 @@ def test_defaults_resolved():
         (MINIMAL + "[shards]\nshard_size = 0\n", r"\[shards\] shard_size: must be >= 1"),
         (MINIMAL + "[shards]\nshard_size = 2.5\n", r"\[shards\] shard_size: expected an integer"),
         (MINIMAL + "colour = 1\n", r"unknown key 'colour'"),
+        ("seed = -5\n" + MINIMAL, r"seed: must be >= 0 \(numpy's seed sequences take non-negative integers\), got -5"),
         ('[[sources]]\nkind = "phantom"\nsubjects = 2\n', r"missing required key 'name'"),
         ('name = "t"\n', r"missing required key 'sources'"),
         ('name = "t"\n[[sources]]\nsubjects = 2\n', r"\[\[sources\]\] #1: missing required key 'kind'"),

@@ -114,7 +114,8 @@ def test_group_by_sample_splits_frames():
     index = index_of({"direct": [50]})
     split = make_split(index, 0, group_by="sample")
     assert (len(split["train"]), len(split["test"])) == (40, 10)
-    assert make_split(index, 0)["test"] in ([], [f"direct-0000-{f:03d}" for f in range(50)])
+    with pytest.warns(SplitWarning, match=r"the parts \['test'\] got no samples: 50 samples in 1 group\(s\) of \[50\]"):
+        assert make_split(index, 0)["test"] == []  # one subject: all of it in one part
 
 
 def test_largest_remainder():
@@ -279,3 +280,12 @@ def test_a_cohort_travels_from_the_recipe_through_meta_and_index_to_the_split(tm
         assert subject_leaks(split, index["samples"]) == {}
         part = {sid: n for n in names(split) for sid in split[n]}
         assert all(part[f"gt-p{k}-f00"] == part[f"pred-p{k}-f{f:02d}"] for k in range(6) for f in range(3))
+
+
+def test_a_negative_seed_is_refused_by_the_command_line(tmp_path, capsys):
+    """numpy's seed sequences take no negative seed: named at the argument (exit 2), not a traceback."""
+    from meshsar_builder.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["splits", str(tmp_path), "--seed", "-1"])
+    assert exit_.value.code == 2 and "argument --seed: a seed is an integer >= 0, got -1" in capsys.readouterr().err

@@ -130,6 +130,7 @@ def test_shipped_configs_parse():
     ('name = "x"\n[radar_loss]\nbalance = "magic"\n', "balance: must be one of"),
     ('name = "x"\n[optim]\nschedule = "step"\n', "schedule: must be one of"),
     ('name = "x"\nepochs = 3\n', "unknown key 'epochs'"),
+    ('name = "x"\nseed = -3\n', "seed: must be >= 0"),
 ])
 def test_bad_configs_name_the_file_and_key(text, message):
     with pytest.raises(RecipeError, match="cfg.toml") as info:

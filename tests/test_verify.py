@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -118,3 +119,65 @@ def test_object_arrays_are_refused(dataset):
     problems = verify(root)
     assert any("does not load with np.load(allow_pickle=False)" in p for p in problems), problems
     assert set(pack(list(samples.values())[:1])) == set(np.load(root / "shards/shard-00000.npz").files)
+
+
+def test_a_sample_pointed_at_another_row_is_reported_and_refused_by_the_readers(dataset):
+    """Two samples' rows swapped in index.json, shards and digests untouched: a reader would serve one under the
+    other's id (a test sample in the train split)."""
+    from meshsar_builder.dataset.readers import MeshSARDataset, MeshSARIterable
+    from meshsar_builder.pipeline.errors import InputError
+
+    root, index, _ = dataset
+    a, b = index["shards"][0]["sample_ids"][:2]
+    index["samples"][a]["row"], index["samples"][b]["row"] = 1, 0
+    write_json(root / "index.json", index)
+    [problem] = verify(root)
+    assert f"'samples' puts {a} at shard 0 row 1, but it is row 0 of shards/shard-00000.npz (shard 0)" in problem
+    for reader in (MeshSARDataset, MeshSARIterable):
+        with pytest.raises(InputError, match="index.json: malformed: 'samples' puts"):
+            reader(root, split=None)
+
+
+def test_a_shard_replaced_under_its_index_is_refused_by_the_readers(dataset):
+    """The index is sound but a shard file holds other samples (copied in from another build): the row's id is
+    checked as it is read."""
+    from meshsar_builder.dataset.readers import MeshSARDataset, MeshSARIterable
+    from meshsar_builder.pipeline.errors import InputError
+
+    root, index, _ = dataset
+    first, second = (root / entry["file"] for entry in index["shards"][:2])
+    first.write_bytes(second.read_bytes())
+    with pytest.raises(InputError, match=r"shard-00000.npz: row 0 holds sample \S+, but index.json puts"):
+        MeshSARDataset(root, split=None)[0]
+    with pytest.raises(InputError, match=r"shard-00000.npz: row \d holds sample"):
+        list(MeshSARIterable(root, split=None, shuffle=False))
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda index: index["shards"][0].pop("sha256"), r"shards\[0\] lacks or mistypes \['sha256'\]"),
+    (lambda index: index.update(shards=None), r"'shards' must be a list, got NoneType"),
+    (lambda index: index.update(counts=None), r"'counts' must be a dict"),
+    (lambda index: index.update(channels=None), r"'channels' must be a list"),
+    (lambda index: index.update(image_size="64"), r"'image_size' must be \[H, W\] of positive integers, got '64'"),
+    (lambda index: next(iter(index["samples"].values())).pop("subject"), r"sample \S+ lacks or mistypes \['subject'\]"),
+])
+def test_a_malformed_index_is_named_not_a_traceback(dataset, edit, message):
+    root, index, _ = dataset
+    edit(index)
+    write_json(root / "index.json", index)
+    [problem] = verify(root)
+    assert problem.startswith(f"{root / 'index.json'}: malformed: ") and re.search(message, problem)
+
+
+def test_an_id_listed_twice_in_one_part_is_reported_and_refused(dataset):
+    from meshsar_builder.dataset.readers import MeshSARDataset
+    from meshsar_builder.pipeline.errors import InputError
+
+    root, _, _ = dataset
+    path = root / "splits" / "seed-0.json"
+    split = json.loads(path.read_text())
+    split["train"].append(split["train"][0])
+    write_json(path, split)
+    assert verify(root) == [f"splits/seed-0.json: sample {split['train'][0]} is listed twice in 'train'"]
+    with pytest.raises(InputError, match=r"seed-0.json: 1 id\(s\) listed more than once"):
+        MeshSARDataset(root, split="train")

@@ -53,7 +53,7 @@ def channel_indices(index: dict, channels: list[str] | None) -> list[int] | None
         return None
     unknown = [c for c in channels if c not in index["channels"]]
     if unknown:
-        raise ValueError(f"channels {unknown} not in the dataset's {index['channels']}")
+        raise InputError(f"channels {unknown} not in the dataset's {index['channels']}")
     return [index["channels"].index(c) for c in channels]
 
 
@@ -130,7 +130,17 @@ class MeshSARDataset(Dataset):
 
     def __getitem__(self, i: int) -> dict:
         file, row = self._where[i]
-        return to_tensors(self._cache.get(file)[row], self.channels, self.index if self.noisy_loss_echo else None)
+        sample = self._cache.get(file)[row]
+        _check_id(sample, self.ids[i], self.root / file, row)
+        return to_tensors(sample, self.channels, self.index if self.noisy_loss_echo else None)
+
+
+def _check_id(sample, expected: str, path: Path, row: int) -> None:
+    """InputError when a shard's row holds another sample than index.json says (a shard replaced after indexing):
+    a reader would serve it under the wrong id, and the wrong split."""
+    if sample.sample_id != expected:
+        raise InputError(f"{path}: row {row} holds sample {sample.sample_id}, but index.json puts {expected} there; "
+                         f"`meshsar verify` checks the build")
 
 
 def collate_meshes(batch: list[dict]) -> dict:
@@ -178,6 +188,8 @@ class MeshSARIterable(IterableDataset):
         for sid in split_ids(self.root, index, split, seed):
             where = index["samples"][sid]
             rows.setdefault(where["shard"], []).append(where["row"])
+        self._ids = {(index["shards"][k]["file"], row): index["shards"][k]["sample_ids"][row]
+                     for k, some in rows.items() for row in some}
         # (file, rows of the split in it), in dataset order
         self.shards = [(index["shards"][k]["file"], sorted(rows[k])) for k in sorted(rows)]
         self.seed, self.shuffle, self.epoch = seed, shuffle, epoch
@@ -215,4 +227,6 @@ class MeshSARIterable(IterableDataset):
         for file, rows in self.assignment(consumer, consumers):
             shard = Shard(self.root / file)
             for row in rows:
-                yield to_tensors(shard[row], self.channels, self.index)
+                sample = shard[row]
+                _check_id(sample, self._ids[file, row], self.root / file, row)
+                yield to_tensors(sample, self.channels, self.index)

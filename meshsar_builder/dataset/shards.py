@@ -390,4 +390,42 @@ def read_index(out_dir: str | os.PathLike) -> dict:
     missing = [k for k in (*INDEX_KEYS, "samples") if not isinstance(index, dict) or k not in index]
     if missing:
         raise InputError(f"{path}: missing keys {missing}")
+    problems = index_problems(index)
+    if problems:
+        more = f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""
+        raise InputError(f"{path}: malformed: {'; '.join(problems[:5])}{more}")
     return index
+
+
+def index_problems(index: dict) -> list[str]:
+    """What in an index.json object (its keys present) the readers and splits cannot trust: entries of the wrong
+    type, and a sample whose (shard, row) is not where its shard entry lists it (a reader would serve another
+    sample under its id)."""
+    problems = []
+    for key, kind in (("shards", list), ("samples", dict), ("counts", dict), ("views", list), ("channels", list)):
+        if not isinstance(index[key], kind):
+            problems.append(f"'{key}' must be a {kind.__name__}, got {type(index[key]).__name__}")
+    size = index["image_size"]
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(n, int) and n > 0 for n in size)):
+        problems.append(f"'image_size' must be [H, W] of positive integers, got {size!r}")
+    if problems:
+        return problems
+    fields = {"file": str, "n": int, "sha256": str, "sample_ids": list}
+    for k, entry in enumerate(index["shards"]):
+        bad = [f for f, kind in fields.items() if not isinstance(entry, dict) or not isinstance(entry.get(f), kind)]
+        if bad:
+            problems.append(f"shards[{k}] lacks or mistypes {bad}")
+            continue
+        for row, sid in enumerate(entry["sample_ids"]):
+            where = index["samples"].get(sid)
+            if not isinstance(where, dict):
+                problems.append(f"sample {sid!r} of {entry['file']} has no entry in 'samples'")
+            elif (where.get("shard"), where.get("row")) != (k, row):
+                problems.append(f"'samples' puts {sid} at shard {where.get('shard')} row {where.get('row')}, but it "
+                                f"is row {row} of {entry['file']} (shard {k})")
+    for sid, where in index["samples"].items():
+        bad = [f for f in ("source", "subject", "subset")
+               if not isinstance(where, dict) or not isinstance(where.get(f), str)]
+        if bad:
+            problems.append(f"sample {sid} lacks or mistypes {bad}")
+    return problems

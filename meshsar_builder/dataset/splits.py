@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,7 +61,8 @@ GROUP_BY = ("subject", "sample")
 
 
 class SplitWarning(UserWarning):
-    """A split that may hold one subject in several parts (group_by = "sample", an opt-in)."""
+    """A split that may hold one subject in several parts (group_by = "sample", an opt-in), or that leaves a part
+    empty."""
 
 
 def group_key(sample: dict) -> str:
@@ -158,6 +160,13 @@ def make_split(index: dict, seed: int, ratios: dict[str, float] | None = None, g
             k = min(int(np.searchsorted(bounds, start + len(members) / 2, side="right")), len(names) - 1)
             chosen[names[k]].extend(members)
             start += len(members)
+    empty = [n for n in names if ratios[n] > 0 and not chosen[n]]
+    if empty:
+        sizes = sorted((len(g) for g in groups_all.values()), reverse=True)
+        warnings.warn(f"split seed {seed}: the parts {empty} got no samples: {len(index['samples'])} samples in "
+                      f"{len(groups_all)} group(s) of {sizes[:10]}{'...' if len(sizes) > 10 else ''} samples (a "
+                      f"{group_by}'s samples stay in one part), too few for the ratios {ratios}", SplitWarning,
+                      stacklevel=2)
     return {"seed": int(seed), "ratios": ratios, "group_by": group_by,
             **{n: sorted(ids, key=position.__getitem__) for n, ids in chosen.items()}}
 
@@ -192,6 +201,10 @@ def read_split(out_dir: str | os.PathLike, seed: int, index: dict | None = None)
     group_by = split.get("group_by", "subject")
     if group_by not in GROUP_BY:
         raise InputError(f"{path}: group_by must be one of {GROUP_BY}, got {group_by!r}")
+    repeated = repeated_ids(split)
+    if repeated:
+        raise InputError(f"{path}: {len(repeated)} id(s) listed more than once (a reader would serve them twice an "
+                         f"epoch, or in two parts): {repeated[:5]}")
     leaks = subject_leaks(split, (index if index is not None else read_index(out_dir))["samples"])
     if leaks and group_by == "subject":
         raise InputError(f"{path}: a subject-grouped split with {len(leaks)} subject(s) in two parts, which leaks "
@@ -201,6 +214,12 @@ def read_split(out_dir: str | os.PathLike, seed: int, index: dict | None = None)
                       f"parts, so its parts are not subject-independent: {describe_leaks(leaks)}", SplitWarning,
                       stacklevel=2)
     return split
+
+
+def repeated_ids(split: dict) -> list[str]:
+    """The ids a split file lists more than once, within one part or across its parts."""
+    counts = Counter(sid for name in split["ratios"] if isinstance(split.get(name), list) for sid in split[name])
+    return sorted(sid for sid, n in counts.items() if n > 1)
 
 
 def split_dataset(out_dir: str | os.PathLike, seed: int, ratios: dict[str, float] | None = None,

@@ -120,8 +120,9 @@ def _split_problems(path: Path, known: set[str], samples: dict | None = None) ->
         if unknown:
             problems.append(f"split '{name}' names {len(unknown)} id(s) not in the index: {unknown[:5]}")
         for sid in split[name]:
-            if sid in seen and seen[sid] != name:
-                problems.append(f"sample {sid} is in both '{seen[sid]}' and '{name}'")
+            if sid in seen:
+                problems.append(f"sample {sid} is in both '{seen[sid]}' and '{name}'" if seen[sid] != name
+                                else f"sample {sid} is listed twice in '{name}'")
             seen[sid] = name
     leaks = subject_leaks(split, samples or {}) if group_by == "subject" else {}
     if leaks:

@@ -175,6 +175,8 @@ def parse(text: str, file: str = "<recipe>") -> Recipe:
     if not NAME_RE.match(name):
         raise RecipeError(f"{file}: name: letters, digits, '_' and '-' only, got {name!r}")
     seed = _coerce(data.get("seed", 0), int, f"{file}: seed")
+    if seed < 0:
+        raise RecipeError(f"{file}: seed: must be >= 0 (numpy's seed sequences take non-negative integers), got {seed}")
     if not isinstance(data["sources"], list) or not data["sources"]:
         raise RecipeError(f"{file}: sources: need at least one [[sources]] table")
     sources = tuple(build(section_class(SOURCES_ENTRY), s, f"{file}: [[sources]] #{i + 1}") for i, s in enumerate(data["sources"]))

@@ -178,6 +178,10 @@ class TrainConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     text: str = ""  # the TOML it came from (kept in run folders and checkpoints)
 
+    def __post_init__(self):
+        if self.seed < 0:
+            raise ValueError(f"seed: must be >= 0 (numpy's seed sequences take non-negative integers), got {self.seed}")
+
     def as_dict(self) -> dict:
         """Plain data (lists, not tuples), for JSON and checkpoints."""
         plain = dataclasses.asdict(self)

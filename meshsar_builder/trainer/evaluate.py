@@ -178,6 +178,9 @@ def evaluate(run: str | os.PathLike, data: str | os.PathLike | None = None, spli
         learned.append((method, net, views, [index["channels"].index(c) for c in inf["channels"]]))
         configs[method] = cfg
     dataset = MeshSARDataset(data, "test", seed=split_seed(split), noisy_loss_echo=refine)
+    if not len(dataset):
+        raise InputError(f"{data}/splits/{split}.json: its test part holds no samples (too few subjects for its "
+                         f"ratios: each subject's samples stay in one part); nothing to evaluate")
     if refine:
         echoes = _echo_source(data, index, refine_echo)
         # mesh models only: an implicit model's surface has no topology to move
