@@ -34,6 +34,7 @@ from meshsar_builder.pipeline.runner import Context, Item, Results, Stage
 from meshsar_builder.pipeline.seeding import item_rng
 
 NAME = "ssm"
+MIN_SUBJECTS = 3  # a mean and one mode from two shapes is their difference: no model of a population
 
 
 def sample_ids(ctx: Context) -> list[str]:
@@ -44,9 +45,10 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     registered = results.of("register")
     if not registered:
         return []
-    if len(registered) < 2 or not next(iter(registered.values()))["final"]:
-        # The rounds stopped short of their template: one failed item says why, not every item a missing file.
-        why = (f"the shape model needs at least 2 registered subjects, and registration kept {len(registered)} "
+    if len(registered) < MIN_SUBJECTS or not next(iter(registered.values()))["final"]:
+        # Too few fits, or rounds that stopped short of their template: one failed item says why, not every item.
+        why = (f"the shape model needs at least {MIN_SUBJECTS} registered subjects, and registration kept "
+               f"{len(registered)} "
                f"({', '.join(sorted(registered))}); failures.json names the fits it rejected")
         return [Item("model", ("model.npz",), params=dataclasses.asdict(ctx.recipe.ssm), data={"refused": why})]
     template = str(ctx.stage_dir("register") / "template.ply")
@@ -85,8 +87,8 @@ def _built_model(inputs: tuple[tuple[str, str], ...], variance: float, procruste
     the stage's items (0.2 s an item at paper scale). Its arrays are read-only, as the items share them."""
     template, faces, labels = read_ply(inputs[0][0])
     shapes = np.stack([read_ply(p)[0] for p, _ in inputs[1:]])
-    if len(shapes) < 3:
-        raise MeshError(f"shape model: needs at least 3 registered subjects, got {len(shapes)}")
+    if len(shapes) < MIN_SUBJECTS:
+        raise MeshError(f"shape model: needs at least {MIN_SUBJECTS} registered subjects, got {len(shapes)}")
     # The template's frame (register: the groupwise template in its canonical pose), so the
     # model's pose does not follow whichever subject was listed first.
     model = build_model(shapes, faces, variance, procrustes_iterations, labels=labels, reference=template)

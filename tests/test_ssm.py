@@ -298,8 +298,8 @@ def test_the_stage_lists_its_longest_items_first(tmp_path):
 
 
 def test_a_registration_that_kept_fewer_than_two_fits_fails_the_model_saying_why(tmp_path):
-    """The rounds stop when fewer than 2 fits are left, before a template: the ssm stage plans one item that fails
-    naming the fits kept, not every item on a missing template file."""
+    """The rounds stop when fewer than 2 fits are left, before a template, and a model needs 3: the ssm stage plans
+    one item that fails naming the fits kept, not every item on a missing template file or the model's own check."""
     from types import SimpleNamespace
 
     from meshsar_builder.geometry.ssm import SSMParams
@@ -309,7 +309,11 @@ def test_a_registration_that_kept_fewer_than_two_fits_fails_the_model_saying_why
     ctx = Context(out=tmp_path, recipe=SimpleNamespace(ssm=SSMParams(), seed=0))
     kept = {"round0/ct_1001": {"final": False, "fit": {}, "subject": "ct_1001", "source": "mmwhs"}}
     [item] = ssm.plan(ctx, Results(done={"register": kept}))
-    with pytest.raises(MeshError, match=r"at least 2 registered subjects, and registration kept 1 \(round0/ct_1001\)"):
+    with pytest.raises(MeshError, match=r"at least 3 registered subjects, and registration kept 1 \(round0/ct_1001\)"):
         ssm.run(ctx, item)
-    both = {f"ct_{n}": {"final": True, "fit": {}, "subject": f"ct_{n}", "source": "mmwhs"} for n in (1001, 1002)}
-    assert len(ssm.plan(ctx, Results(done={"register": both}))) > 1
+    final = {f"ct_{n}": {"final": True, "fit": {}, "subject": f"ct_{n}", "source": "mmwhs"} for n in (1001, 1002, 1003)}
+    assert len(ssm.plan(ctx, Results(done={"register": final}))) > 1
+    two = dict(list(final.items())[:2])  # the last round's fits, but too few for a model (_built_model's own test)
+    [item] = ssm.plan(ctx, Results(done={"register": two}))
+    with pytest.raises(MeshError, match=r"at least 3 registered subjects, and registration kept 2 \(ct_1001, ct_10"):
+        ssm.run(ctx, item)

@@ -228,7 +228,8 @@ class RemeshWarning(UserWarning):
 
 
 def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[np.ndarray, np.ndarray]:
-    """Taubin-smooth and isotropically remesh a closed surface to edges of params.edge_mm.
+    """Taubin-smooth (an input denser than the target: marching cubes') and isotropically remesh a closed surface to
+    edges of params.edge_mm; MeshError for an open one (its holes would be closed with invented surface).
 
     verts : (n, 3) float mm, faces : (m, 3) int  ->  (n', 3) float, (m', 3) int64.
     The result has outward normals. A surface that is not closed genus 0 without
@@ -239,13 +240,17 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
     none over it) is coarsened by _coarsen_onto; any other is remeshed with every iteration
     checked against it.
     """
+    checks = mesh_checks(verts, faces)
+    if not checks["watertight"]:
+        raise MeshError(f"remesh: the input surface is open (not watertight; {', '.join(surface_problems(checks))}): "
+                        f"remeshing would close its holes with surface it does not have; remesh a closed surface")
     failed: list[str] = []
     for factor in (1.0, *FINER_EDGES):
         attempt = dataclasses.replace(params, edge_mm=params.edge_mm * factor)
         try:
             result = _remesh_at(verts, faces, attempt)
         except MeshError as error:
-            if not failed and surface_problems(mesh_checks(verts, faces)):
+            if not failed and surface_problems(checks):
                 raise  # an input that is not closed genus 0 is no thinner at finer edges
             failed.append(f"{attempt.edge_mm:g} mm: {error}")
             continue
@@ -260,12 +265,15 @@ def _remesh_at(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tu
     """remesh at params.edge_mm alone: MeshError where the surface fails its checks."""
     meshset = _meshset(verts, faces)
     _clean(meshset)
-    if params.taubin_steps:
+    lengths = edge_lengths(np.asarray(verts), unique_edges(np.asarray(faces)))
+    dense = np.median(lengths) < params.edge_mm / 2 and lengths.max() < params.edge_mm  # everywhere: marching cubes
+    # Smoothing takes out marching cubes' stairs; a surface coarser than that is its vertices, which it would pull
+    # in: a 12-triangle box lost 99 % of its volume, a re-remeshed 2.5 mm heart moved 1.1 mm against 0.5 without.
+    if params.taubin_steps and dense:
         meshset.apply_coord_taubin_smoothing(
             lambda_=params.taubin_lambda, mu=params.taubin_mu, stepsmoothnum=params.taubin_steps
         )
-    lengths = edge_lengths(np.asarray(verts), unique_edges(np.asarray(faces)))
-    if np.median(lengths) < params.edge_mm / 2 and lengths.max() < params.edge_mm:  # dense everywhere: marching cubes
+    if dense:
         _coarsen_onto(meshset, params)
     else:
         _isotropic(meshset, params, params.iterations)
