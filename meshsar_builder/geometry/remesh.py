@@ -216,6 +216,8 @@ def _repair(meshset: pymeshlab.MeshSet, params: RemeshParams) -> None:
     _clean(meshset)
 
 
+# An input whose median edge is longer than this many target edges is not smoothed before remeshing.
+COARSE_INPUT = 2.0
 # Finer edges (fractions of edge_mm) tried, in turn, on a surface that fails at edge_mm. A real whole-heart CT
 # (a pulmonary artery branch 1.1-2 mm thick) came out of the remesher at 2.5 mm edges with its two sides
 # crossed (7 self-intersecting faces); the repair cut them out and left 2 components. At 2.0 mm it remeshed
@@ -228,8 +230,8 @@ class RemeshWarning(UserWarning):
 
 
 def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[np.ndarray, np.ndarray]:
-    """Taubin-smooth (an input denser than the target: marching cubes') and isotropically remesh a closed surface to
-    edges of params.edge_mm; MeshError for an open one (its holes would be closed with invented surface).
+    """Taubin-smooth (but a low-poly input, COARSE_INPUT) and isotropically remesh a closed surface to edges of
+    params.edge_mm; MeshError for an open one (its holes would be closed with invented surface).
 
     verts : (n, 3) float mm, faces : (m, 3) int  ->  (n', 3) float, (m', 3) int64.
     The result has outward normals. A surface that is not closed genus 0 without
@@ -267,9 +269,9 @@ def _remesh_at(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tu
     _clean(meshset)
     lengths = edge_lengths(np.asarray(verts), unique_edges(np.asarray(faces)))
     dense = np.median(lengths) < params.edge_mm / 2 and lengths.max() < params.edge_mm  # everywhere: marching cubes
-    # Smoothing takes out marching cubes' stairs; a surface coarser than that is its vertices, which it would pull
-    # in: a 12-triangle box lost 99 % of its volume, a re-remeshed 2.5 mm heart moved 1.1 mm against 0.5 without.
-    if params.taubin_steps and dense:
+    # Smoothing takes out stairs and noise finer than the target; a surface far coarser than it (a low-poly model)
+    # is its vertices, which smoothing pulls in: a 12-triangle box lost 99 % of its volume.
+    if params.taubin_steps and np.median(lengths) <= COARSE_INPUT * params.edge_mm:
         meshset.apply_coord_taubin_smoothing(
             lambda_=params.taubin_lambda, mu=params.taubin_mu, stepsmoothnum=params.taubin_steps
         )
