@@ -327,6 +327,11 @@ def _pieces_apart(union: np.ndarray, chosen: np.ndarray, affine: np.ndarray, str
     LV and RV pools without the myocardium between them), so one closed surface cannot hold it.
     Smaller pieces are islands, left out and recorded ({"pieces_apart_ml": {structure: ml}}).
     """
+    # The box of the union only (a CT's field of view is mostly background): int32 labels of a whole
+    # 512 x 512 x 248 volume would take 260 MB.
+    box = tuple(slice(ends[0], ends[-1] + 1) for ends in
+                (np.flatnonzero(union.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)))
+    union, chosen = union[box], chosen[box]
     pieces, count = ndimage.label(union, structure=np.ones((3, 3, 3)))  # diagonal contacts count as touching
     if count <= 1:
         return {}
