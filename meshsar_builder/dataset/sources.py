@@ -281,17 +281,20 @@ def index_acdc(
     for frame in sorted(root.rglob(f"{subject}/*_frame[0-9][0-9]_gt.nii*")):
         if frame.parent not in with_info:
             orphans.setdefault(frame.parent, frame)
-    infos = _first_n(infos, limit)
-    if not infos and not orphans:
+    info_of = {p.parent: p for p in infos}
+    folders = _first_n(list(info_of) + list(orphans), limit)  # `limit` patients, with an Info.cfg or not
+    if not folders:
         raise InputError(f"{root}: no ACDC patient folders (patientNNN/Info.cfg) found")
-    items = [failed_item(source, pdir.name, frame, f"{pdir}: _gt frames but no Info.cfg, so ED and ES are unknown")
-             for pdir, frame in list(orphans.items())[:limit]]
-    for info_path in infos:
-        pdir = info_path.parent
+    items = []
+    for pdir in folders:
+        if pdir not in info_of:
+            items.append(failed_item(source, pdir.name, orphans[pdir],
+                                     f"{pdir}: _gt frames but no Info.cfg, so ED and ES are unknown"))
+            continue
         try:
-            items += _acdc_patient(pdir, parse_info_cfg(info_path), source, provenance, predicted)
+            items += _acdc_patient(pdir, parse_info_cfg(info_of[pdir]), source, provenance, predicted)
         except InputError as error:
-            items.append(failed_item(source, pdir.name, info_path, error))
+            items.append(failed_item(source, pdir.name, info_of[pdir], error))
     return items
 
 
