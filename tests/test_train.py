@@ -327,6 +327,20 @@ def test_evaluate_writes_metrics_tables_and_renders(tiny_data, tmp_path):
     table = (out / "summary.md").read_text()
     assert table.index("dice") < table.index("assd_mm") < table.index("hd_mm") < table.index("si_pct")
     assert all(np.isfinite(summary["all"]["sar2mesh"][c][0]) for c in COLUMNS)
+    # A split whose test part is empty (too few subjects for its ratios) is named, not a StopIteration inside.
+    import json
+
+    from meshsar_builder.dataset.shards import read_index
+    from meshsar_builder.pipeline.errors import InputError
+
+    empty = tiny_data / "splits" / "seed-99.json"
+    ids = list(read_index(tiny_data)["samples"])
+    empty.write_text(json.dumps({"seed": 99, "ratios": {"train": 0.8, "test": 0.2}, "train": ids, "test": []}))
+    try:
+        with pytest.raises(InputError, match=r"seed-99.json: its test part holds no samples"):
+            evaluate(tmp_path, tiny_data, split="seed-99", samples=2000, progress=False)
+    finally:
+        empty.unlink()
 
 
 IMAGES_CONFIG = """

@@ -269,7 +269,8 @@ def read_label_map(
         more = f" and {unmapped.sum() - 20} more" if unmapped.sum() > 20 else ""
         warnings.warn(f"{path}: label values with no mapping, read as background: {listed}{more}", InputWarning, stacklevel=2)
     labels = np.zeros(data.shape, dtype=np.uint8)
-    for key, value in zip(lut_keys[np.isin(lut_keys, present)], lut_vals[np.isin(lut_keys, present)]):
+    found = np.isin(lut_keys, present)
+    for key, value in zip(lut_keys[found], lut_vals[found]):
         labels[data == key] = value
     return labels, np.asarray(img.affine, dtype=np.float64)
 

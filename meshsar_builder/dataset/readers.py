@@ -38,7 +38,7 @@ def split_ids(root: str | os.PathLike, index: dict, split: str | None, seed: int
     """Sample ids of `split` in OUT/splits/seed-<seed>.json (None: every sample, in dataset order)."""
     if split is None:
         return [sid for shard in index["shards"] for sid in shard["sample_ids"]]
-    chosen = read_split(root, seed)
+    chosen = read_split(root, seed, index)  # the index read once: it is validated where it is read
     if split not in chosen["ratios"]:
         raise InputError(f"split {split!r} not in seed-{seed}.json; it has {list(chosen['ratios'])}")
     unknown = [s for s in chosen[split] if s not in index["samples"]]

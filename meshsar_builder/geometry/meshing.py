@@ -340,11 +340,11 @@ def _pieces_apart(union: np.ndarray, chosen: np.ndarray, affine: np.ndarray, str
     lost, too_much = {}, []
     for structure in structures:
         voxels = chosen == STRUCTURES[structure]
-        away = int(np.count_nonzero(voxels & apart))
+        away, whole = int(np.count_nonzero(voxels & apart)), int(np.count_nonzero(voxels))
         if away:
             lost[structure] = round(away * ml, 3)
-            if away > island_fraction * np.count_nonzero(voxels):
-                too_much.append(f"{structure} ({away * ml:.1f} of {np.count_nonzero(voxels) * ml:.1f} ml)")
+            if away > island_fraction * whole:
+                too_much.append(f"{structure} ({away * ml:.1f} of {whole * ml:.1f} ml)")
     if too_much:
         raise InputError(f"{name}: the structures {structures} form {count} separate pieces, and one closed surface "
                          f"holds only the largest; apart from it lie {', '.join(too_much)}, more than island_fraction "

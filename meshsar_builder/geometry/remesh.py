@@ -268,14 +268,14 @@ def _remesh_at(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tu
     meshset = _meshset(verts, faces)
     _clean(meshset)
     lengths = edge_lengths(np.asarray(verts), unique_edges(np.asarray(faces)))
-    dense = np.median(lengths) < params.edge_mm / 2 and lengths.max() < params.edge_mm  # everywhere: marching cubes
+    median = np.median(lengths)
     # Smoothing takes out stairs and noise finer than the target; a surface far coarser than it (a low-poly model)
     # is its vertices, which smoothing pulls in: a 12-triangle box lost 99 % of its volume.
-    if params.taubin_steps and np.median(lengths) <= COARSE_INPUT * params.edge_mm:
+    if params.taubin_steps and median <= COARSE_INPUT * params.edge_mm:
         meshset.apply_coord_taubin_smoothing(
             lambda_=params.taubin_lambda, mu=params.taubin_mu, stepsmoothnum=params.taubin_steps
         )
-    if dense:
+    if median < params.edge_mm / 2 and lengths.max() < params.edge_mm:  # dense everywhere: marching cubes
         _coarsen_onto(meshset, params)
     else:
         _isotropic(meshset, params, params.iterations)
