@@ -15,6 +15,7 @@ import numpy as np
 import pymeshlab
 import trimesh
 
+from meshsar_builder.geometry.closest import point_to_surface
 from meshsar_builder.geometry.intersections import self_intersecting_faces
 from meshsar_builder.geometry.measures import edge_lengths, unique_edges
 from meshsar_builder.pipeline.errors import MeshError
@@ -38,6 +39,9 @@ class RemeshParams:
         non-manifold fins.
     repair_passes: how many times a failed surface is repaired (self-intersecting faces
         cut out, holes closed, smoothed, remeshed) before the item fails.
+    max_lost_mm: largest distance of an input vertex from the remeshed surface; farther, a thin part was cut
+        away or collapsed (remesh tries finer edges). Measured at 2.5 mm edges: real CT whole hearts 2.0 and
+        5.1 mm (aortic and pulmonary branch tips gone), 0.9-1.2 at 2.0 mm; phantoms and real ventricles 0.7-1.1.
     """
 
     edge_mm: float = 2.5
@@ -48,6 +52,7 @@ class RemeshParams:
     max_surface_mm: float = 0.5
     feature_deg: float = 60.0
     repair_passes: int = 2
+    max_lost_mm: float = 1.5
 
     def __post_init__(self) -> None:
         if not self.edge_mm > 0:
@@ -68,6 +73,8 @@ class RemeshParams:
             raise ValueError(f"feature_deg: must be in (0, 180], got {self.feature_deg}")
         if self.repair_passes < 0:
             raise ValueError(f"repair_passes: must be >= 0, got {self.repair_passes}")
+        if not self.max_lost_mm > 0:
+            raise ValueError(f"max_lost_mm: must be > 0, got {self.max_lost_mm}")
 
 
 def _meshset(verts: np.ndarray, faces: np.ndarray) -> pymeshlab.MeshSet:
@@ -235,7 +242,8 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
 
     verts : (n, 3) float mm, faces : (m, 3) int  ->  (n', 3) float, (m', 3) int64.
     The result has outward normals. A surface that is not closed genus 0 without
-    self-intersections after params.repair_passes repairs, from an input that is, is remeshed
+    self-intersections after params.repair_passes repairs, from an input that is, or that lost a part of the
+    input (an input vertex farther than params.max_lost_mm from it: _lost_part), is remeshed
     again from the input at the finer edges of FINER_EDGES; the first that passes is returned
     with a RemeshWarning saying which edge and why, and MeshError names every edge tried where
     none passes. An input denser than the target everywhere (median edge under half of edge_mm,
@@ -256,11 +264,31 @@ def remesh(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[
                 raise  # an input that is not closed genus 0 is no thinner at finer edges
             failed.append(f"{attempt.edge_mm:g} mm: {error}")
             continue
+        lost = _lost_part(verts, *result, params.max_lost_mm)
+        if lost:
+            failed.append(f"{attempt.edge_mm:g} mm: {lost}")
+            continue
         if failed:
             warnings.warn(f"remeshed at {attempt.edge_mm:g} mm edges, not {params.edge_mm:g} mm (parts too thin for "
                           f"it); " + "; ".join(failed), RemeshWarning, stacklevel=2)
         return result
     raise MeshError("no edge length gave a closed genus-0 surface: " + "; ".join(failed))
+
+
+def _lost_part(verts: np.ndarray, new_verts: np.ndarray, new_faces: np.ndarray, max_lost_mm: float) -> str:
+    """Why the remeshed surface (new_verts (n', 3), new_faces (m', 3)) lost a part of the input whose vertices are
+    verts (n, 3) float mm, or "" where every input vertex lies within max_lost_mm of it.
+
+    The remesher's own surface check bounds how far its vertices move from the surface, not what
+    it leaves out: at 2.5 mm edges it cut 20 mm off the end of a 2 mm tube, closed genus 0, and
+    the tips of a real CT's aortic and pulmonary branches (5.1 mm), which finer edges keep."""
+    distance = point_to_surface(np.asarray(verts, dtype=np.float64), new_verts, new_faces)[0]
+    far = distance > max_lost_mm
+    if not far.any():
+        return ""
+    worst = np.asarray(verts)[np.argmax(distance)]
+    return (f"lost part of the input: {int(far.sum())} of its {len(distance)} vertices lie more than "
+            f"{max_lost_mm:g} mm from the result, up to {distance.max():.1f} mm (at {np.round(worst, 1).tolist()} mm)")
 
 
 def _remesh_at(verts: np.ndarray, faces: np.ndarray, params: RemeshParams) -> tuple[np.ndarray, np.ndarray]:
