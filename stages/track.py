@@ -97,4 +97,5 @@ def displacement(moved: np.ndarray, labels: np.ndarray) -> dict:
 # than the carried factor's extra iterations).
 # Version 15: a frame's ring points counted in each ring's affine-normalised plane and turned to follow its
 # neighbour's rings (landmarks.py).
-STAGE = Stage(name=NAME, version=15, plan=plan, run=run, after=("remesh",))
+# Version 16: a frame fit's spline start smoothed by frame_landmark_smoothing (100, not landmark_smoothing's 10).
+STAGE = Stage(name=NAME, version=16, plan=plan, run=run, after=("remesh",))

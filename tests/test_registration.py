@@ -176,6 +176,7 @@ def test_choose_template_takes_the_median_volume_deterministically():
         ("fold_stiffening", 1.0),
         ("landmark_weight", -0.1),
         ("landmark_smoothing", -1.0),
+        ("frame_landmark_smoothing", -1.0),
         ("min_label_agreement", 1.5),
         ("groupwise_rounds", -1),
         ("groupwise_converge_mm", -0.1),
