@@ -195,4 +195,5 @@ def warm(ctx: Context) -> None:
 # error (the demo heart's 1.1-2.6e-5 from the direct sum before, 1.5-2.8e-5 now).
 # Version 14: the depth's detection test takes the noise image's RMS per range slice, at each pixel's peak (pure
 # noise passed 1.75e-4 of the pixels against the whole volume's RMS, 2.0e-6 now), from a float64 sum.
-STAGE = Stage(name=NAME, version=14, plan=plan, run=run, resources=resources, check=check, warm=warm)
+# Version 15: a mesh reaching beyond the images' field of view (render.check_field_of_view) is refused.
+STAGE = Stage(name=NAME, version=15, plan=plan, run=run, resources=resources, check=check, warm=warm)

@@ -460,6 +460,23 @@ def test_a_mesh_the_radar_cannot_simulate_is_refused_naming_the_problem(case, me
         RR.specular_loss_echo(verts, faces, radar)
 
 
+@pytest.mark.parametrize("view, axis, shift", [("left", 0, 55.0), ("anterior", 1, -60.0), ("superior", 2, 51.0)])
+def test_a_mesh_reaching_beyond_the_images_is_refused_naming_view_and_axis(view, axis, shift):
+    """A 30 mm sphere moved 51-60 mm along one axis of a view reaches past fov / 2 = 80 mm: along u or v its echo
+    would land aliased on the image's edge, along w beyond the range slices (views are orthogonal: one view at a
+    time, or the first view that sees the reach along any of its axes is named). In a wide enough field, it runs."""
+    radar = RP.RadarParams(aperture=(8, 8), step_mm=20.0, n_samples=16, echo_decimation=(1, 1, 1),
+                           loss_decimation=(1, 1, 1), views=(view,))
+    verts, faces = _broken("none")
+    moved = verts + shift * RP.view_frame(view)[axis]
+    reach = 30.0 + abs(shift)
+    message = rf"the mesh reaches {reach:.1f} mm from the heart centre along the {view} view's {'uvw'[axis]} axis"
+    with pytest.raises(ValueError, match=message + r", beyond its images' fov_mm / 2 = 80 mm"):
+        RR.render_sample(moved, faces, radar, ImageParams(size=16), np.random.default_rng(0))
+    wider = ImageParams(size=16, fov_mm=2 * reach + 1.0)
+    assert RR.render_sample(moved, faces, radar, wider, np.random.default_rng(0))["views"][0]["visible_facets"] > 0
+
+
 def test_a_range_window_reaching_behind_the_aperture_and_an_open_surface():
     """z0 within fov / 2 is refused; an open surface (no winding to judge) and the sphere itself are simulated."""
     radar = RP.RadarParams(aperture=(8, 8), step_mm=20.0, n_samples=16, echo_decimation=(1, 1, 1),

@@ -93,6 +93,24 @@ def check_mesh(verts: np.ndarray, faces: np.ndarray, radar: RadarParams) -> None
                              f"z0_mm = {radar.z0_mm} mm: every vertex must lie in front of every aperture")
 
 
+def check_field_of_view(verts: np.ndarray, radar: RadarParams, images: ImageParams) -> None:
+    """ValueError where a mesh reaches beyond its images: every vertex must lie within fov_mm / 2 of the heart centre
+    along each view's u and v (the pixels) and w (the range slices, z0 +- fov_mm / 2).
+
+    verts : (n, 3) float mm, heart frame. What lies beyond is not left out but imaged wrongly: an 8 mm sphere
+    90-140 mm off the axis (fov 160 mm) put the image's peak on its edge column, at 200 mm on the opposite edge
+    (the aperture's 2 mm step aliases its steep angles, and the padded FFT wraps)."""
+    half = images.fov_mm / 2
+    for view in radar.views:
+        reach = np.abs(verts @ view_frame(view).T).max(axis=0)  # (3,) along u, v, w
+        axis = int(np.argmax(reach))
+        if reach[axis] > half:
+            raise ValueError(f"verts: the mesh reaches {reach[axis]:.1f} mm from the heart centre along the {view} "
+                             f"view's {'uvw'[axis]} axis, beyond its images' fov_mm / 2 = {half:g} mm: what lies "
+                             f"outside is imaged aliased onto the image, not left out; raise [images] fov_mm, or cut the "
+                             f"great vessels shorter ([meshing] vessel_length_mm)")
+
+
 def specular_loss_echo(verts: np.ndarray, faces: np.ndarray, radar: RadarParams) -> np.ndarray:
     """The noise-free echo (V, Lx, Ly, Lf) complex64 of a mesh's specular part on loss_grid(radar), as render_sample
     computes echo_clean (the full echo sub-sampled), with no diffuse part: `meshsar bench radar-loss` scans
@@ -181,14 +199,15 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
 
     radar.device picks where each view's echo and imaging run (view_functions); the noise
     is drawn here on the CPU from rng either way, so a CUDA build differs from a CPU
-    build only by floating-point rounding. ValueError for a mesh check_mesh refuses, or a z0_mm
-    within fov_mm / 2 (range slices behind the aperture).
+    build only by floating-point rounding. ValueError for a mesh check_mesh or check_field_of_view refuses, or a
+    z0_mm within fov_mm / 2 (range slices behind the aperture).
     """
     verts, faces = np.asarray(verts, dtype=np.float64), np.asarray(faces)
     check_mesh(verts, faces, radar)
     if radar.z0_mm <= images.fov_mm / 2:
         raise ValueError(f"z0_mm: the range slices span z0 +- fov_mm / 2 = {radar.z0_mm} +- {images.fov_mm / 2} mm, "
                          f"which reaches behind the aperture: z0_mm must exceed fov_mm / 2")
+    check_field_of_view(verts, radar, images)
     tri = verts[faces]
     areas = facet_geometry(verts, faces)[2]
     points = scatterer_points(verts, faces, radar.facet, rng)
