@@ -255,9 +255,10 @@ def ball_and_bent_tube(radius_mm: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_a_thin_tube_the_remesher_cuts_short_is_remeshed_finer_and_keeps_its_end():
-    """At 2.5 mm edges the remesher cut a 2 mm tube short (here by 4.3 mm; on a 0.8 mm grid offset by half a voxel,
-    by 20 mm) and returned a closed genus-0 surface: every surface check passed. Every input vertex must lie within max_lost_mm of the result, the tube
-    must still reach its end cap (x = 0), and the warning must say why the edges are finer."""
+    """At 2.5 mm edges the remesher cut a 2 mm tube short (here by 4.3 mm; on another placement of the grid, with a
+    ball of 10 mm, by 20 mm) and returned a closed genus-0 surface: every surface check passed. Every input vertex
+    must lie within max_lost_mm of the result, the tube must still reach its end cap (x = 0), and the warning must
+    say why the edges are finer."""
     from meshsar_builder.geometry.closest import point_to_surface
 
     verts, faces = ball_and_bent_tube(2.0)

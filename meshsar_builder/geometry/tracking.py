@@ -32,8 +32,8 @@ def frame_params(params: RegistrationParams, steps: int | None = None) -> Regist
     """The registration parameters of a warm-started frame fit: the softest `steps` (default
     frame_steps) stiffness steps of the schedule (and their normal weights), with
     frame_ring_points points along each junction ring as landmarks, their spline smoothed by
-    frame_landmark_smoothing, judged on frame_min_label_agreement; at full resolution unless they are the whole schedule (the soft
-    steps have nothing to coarsen)."""
+    frame_landmark_smoothing, judged on frame_min_label_agreement; at full resolution unless
+    they are the whole schedule (the soft steps have nothing to coarsen)."""
     k = params.frame_steps if steps is None else steps
     return dataclasses.replace(params, stiffness=params.stiffness[-k:], normal_weight=params.normal_weight[-k:],
                                ring_points=params.frame_ring_points, landmark_smoothing=params.frame_landmark_smoothing,

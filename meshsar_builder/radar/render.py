@@ -107,8 +107,8 @@ def check_field_of_view(verts: np.ndarray, radar: RadarParams, images: ImagePara
         if reach[axis] > half:
             raise ValueError(f"verts: the mesh reaches {reach[axis]:.1f} mm from the heart centre along the {view} "
                              f"view's {'uvw'[axis]} axis, beyond its images' fov_mm / 2 = {half:g} mm: what lies "
-                             f"outside is imaged aliased onto the image, not left out; raise [images] fov_mm, or cut the "
-                             f"great vessels shorter ([meshing] vessel_length_mm)")
+                             f"outside is imaged aliased onto the image, not left out; raise [images] fov_mm, or "
+                             f"cut the great vessels shorter ([meshing] vessel_length_mm)")
 
 
 def specular_loss_echo(verts: np.ndarray, faces: np.ndarray, radar: RadarParams) -> np.ndarray:
