@@ -48,8 +48,7 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     if len(registered) < MIN_SUBJECTS or not next(iter(registered.values()))["final"]:
         # Too few fits, or rounds that stopped short of their template: one failed item says why, not every item.
         why = (f"the shape model needs at least {MIN_SUBJECTS} registered subjects, and registration kept "
-               f"{len(registered)} "
-               f"({', '.join(sorted(registered))}); failures.json names the fits it rejected")
+               f"{len(registered)} ({', '.join(sorted(registered))}); failures.json names the fits it rejected")
         return [Item("model", ("model.npz",), params=dataclasses.asdict(ctx.recipe.ssm), data={"refused": why})]
     template = str(ctx.stage_dir("register") / "template.ply")
     inputs = (template, *(str(ctx.stage_dir("register") / f"{i}.ply") for i in registered))
