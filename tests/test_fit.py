@@ -107,6 +107,9 @@ def test_corrected_for_the_models_bias_the_fit_recovers_the_truth_from_the_produ
     assert np.abs(result["z"] - TRUE_Z).max() < 0.02
     moved = [r["moved_mm"] for r in result["rounds"]]
     assert len(moved) == params.corrections and moved[-1] < 0.1 * moved[0]
+    # the loss at the start is the mean shape's, not the last round's start (its `losses` begin there)
+    at_mean = fit_shape(model, targets, setup, FitParams(modes=2, iterations=0))["losses"][0]
+    assert result["loss_start"] == pytest.approx(at_mean) and result["losses"][0] < 0.5 * at_mean
     # without corrections it is the plain fit, and needs no simulator
     short = FitParams(modes=2, iterations=5, corrections=0)
     np.testing.assert_array_equal(F.fit_corrected(model, targets, setup, short)["verts"],
@@ -155,6 +158,12 @@ def test_noise_scale_gives_the_asked_image_snr_and_a_missing_model_is_named(tmp_
     index = {"radar": {"image_snr_db": 30.0}}
     assert noise_scale(index, 30.0) == 1.0 and noise_scale(index, None) == 0.0
     assert noise_scale(index, 20.0) == pytest.approx(10 ** 0.5)  # 10 dB less SNR: sigma x sqrt(10)
+    # a build whose noise is set per sample (snr_db), or is off, has no image SNR to scale from
+    for radar, named in (({"image_snr_db": None, "snr_db": 10.0}, "set by snr_db = 10"),
+                         ({"image_snr_db": None, "snr_db": None}, "is off")):
+        assert noise_scale({"radar": radar}, None) == 0.0
+        with pytest.raises(InputError, match=named):
+            noise_scale({"radar": radar}, 20.0)
     with pytest.raises(InputError, match="model.npz: no shape model"):
         shape_model_tensors(tmp_path / "ssm" / "model.npz")
 
@@ -209,6 +218,15 @@ def fitted(tmp_path_factory):
     # no corrections: this build's echoes are the differentiable echo's and it has no recipe to simulate with
     summary = fit_split(data, params=FitParams(modes=1, iterations=20, corrections=0), samples=500, progress=False)
     return data, summary
+
+
+def test_more_modes_than_the_model_has_fit_them_all(fitted, tmp_path):
+    """`meshsar fit` asks for 7 modes by default; the demo's model has 6 and the smoke's 2."""
+    data, _ = fitted
+    fit_split(data, params=FitParams(modes=7, iterations=2, corrections=0), samples=200, limit=1, out=tmp_path,
+              progress=False)
+    fits = read_json(tmp_path / "fits.json")
+    assert fits["params"]["modes"] == 1 and [len(r["z"]) for r in fits["samples"].values()] == [1]
 
 
 def test_a_split_fits_its_shape_model_samples_only_and_writes_evaluate_tables(fitted):

@@ -14,7 +14,7 @@ torch = pytest.importorskip("torch")
 import meshsar_builder.radar.params as RP  # noqa: E402
 from meshsar_builder.dataset.shards import INDEX_NAME, Sample, build_index, write_shard  # noqa: E402
 from meshsar_builder.dataset.splits import make_split, write_split  # noqa: E402
-from meshsar_builder.pipeline.errors import RecipeError  # noqa: E402
+from meshsar_builder.pipeline.errors import InputError, RecipeError  # noqa: E402
 from meshsar_builder.pipeline.io import sha256_file, write_json  # noqa: E402
 from meshsar_builder.radar.differentiable import echo_torch  # noqa: E402
 from meshsar_builder.radar.imaging import ImageParams  # noqa: E402
@@ -204,6 +204,37 @@ def test_focused_modes_train_against_the_loss_grid_target(tiny_data, tmp_path, m
     assert row["radar"] > 0 and np.isfinite(row["radar_l1"]) and row["radar_l1"] > 0
     if mode == "focused":  # 1 - cosine; depth: millimetres
         assert row["radar_l1"] <= 2
+
+
+def test_the_raw_radar_loss_reads_the_builds_radar_and_its_noise_free_echo():
+    """A build at z0 250 mm, physical-optics reflectivity and centre-only probes (none of them the defaults): the
+    raw and profile losses simulate with every radar key the index records and compare with echo_clean on the
+    loss grid (DESIGN section 10), so the truth scores 0 and a 1 mm shift does not. With the defaults' radar
+    (z0 300 mm) the loss found no aperture centre; with the stored decimated echo it compared with noise."""
+    radar = RP.RadarParams(aperture=(8, 8), step_mm=10.0, n_samples=8, z0_mm=250.0, reflectivity="po",
+                           probes="centre", p=2.0, echo_decimation=(2, 2, 2), loss_decimation=(1, 1, 2))
+    index = RP.index_metadata(radar, TINY_IMAGES)
+    geometry = T.DatasetGeometry.from_index(index)
+    assert geometry.radar == T.DatasetGeometry.from_index(index).full_radar
+    assert (geometry.radar.z0_mm, geometry.radar.reflectivity, geometry.radar.probes) == (250.0, "po", "centre")
+    sphere = trimesh.creation.icosphere(2)
+    verts, faces = torch.tensor(sphere.vertices * (35.0, 30.0, 25.0)), torch.tensor(sphere.faces)
+    loss = RP.loss_grid(radar)
+    clean = torch.stack([echo_torch(verts, faces, loss["positions_mm"][v], loss["frequencies_hz"], radar).reshape(8, 8, 4)
+                         for v in radar.views])[None]  # (1, V, Lx, Ly, Lf)
+    batch = {"echo_clean": clean, "echo_noisy": clean + 0.5 * clean.abs().mean(), "echo": torch.zeros(1, 3, 4, 4, 4)}
+    torch.testing.assert_close(geometry.echo_targets(batch, "clean"), clean.reshape(1, 3, 64, 4))
+    torch.testing.assert_close(geometry.echo_targets(batch, "recorded"), batch["echo_noisy"].reshape(1, 3, 64, 4))
+    for mode in ("raw", "profile"):
+        def score(v):
+            return L.radar_loss(v[None].float(), faces, geometry.echo_targets(batch, "clean"), geometry.positions,
+                                geometry.centres, geometry.freqs, geometry.radar, mode).item()
+        assert score(verts) < 1e-4 and score(verts + torch.tensor([0.0, 0.0, 1.0])) > 0.005, mode  # float32
+    # a build without a loss grid holds no echo_clean: named, not read from the recorded echo
+    old = {k: v for k, v in index.items() if k != "loss_grid"}
+    with pytest.raises(InputError, match="loss grid"):
+        T.DatasetGeometry.from_index(old).echo_targets(batch, "clean")
+    assert T.DatasetGeometry.from_index(old).echo_targets(batch, "recorded").shape == (1, 3, 16, 4)
 
 
 def test_validation_is_a_seeded_part_of_the_train_split(tiny_data):

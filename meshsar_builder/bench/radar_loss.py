@@ -168,24 +168,17 @@ class FocusedEvaluator:
 class RawEvaluator:
     """The trainer's raw relative L1 (mode raw) on RAW_ANTENNAS fixed antennas a view.
 
-    clean: against echo_clean on the loss grid; recorded: against the stored decimated `echo`
-    (what the trainer reads). The trainer's raw mode applies no gradient smoothing.
+    clean: against echo_clean on the loss grid; recorded: against the recorded echo there (echo_clean plus
+    the build's noise), as the trainer reads them (DatasetGeometry.echo_targets). The trainer's raw mode
+    applies no gradient smoothing.
     """
 
     name = "raw"
 
-    def __init__(self, geometry, index, sample: dict, faces: torch.Tensor, target: str):
+    def __init__(self, geometry, sample: dict, faces: torch.Tensor, target: str):
         rng = np.random.default_rng(0)
-        views = geometry.view_index
-        if target == "clean":
-            lg = index["loss_grid"]
-            positions = np.array([lg["positions_mm"][v] for v in geometry.view_names])
-            freqs = np.array(lg["frequencies_hz"])
-            echo = sample["echo_clean"][views]
-        else:
-            positions, freqs = geometry.positions, geometry.freqs
-            echo = sample["echo"][views]
-        echo = echo.reshape(echo.shape[0], -1, echo.shape[-1])
+        batch = {key: sample[key][None] for key in ("echo_clean", "echo_noisy") if key in sample}
+        positions, freqs, echo = geometry.positions, geometry.freqs, geometry.echo_targets(batch, target)[0]
         pick = rng.choice(positions.shape[1], RAW_ANTENNAS, replace=False)
         self.positions, self.echo, self.freqs = positions[:, pick], echo[:, pick][None], freqs
         self.geometry, self.faces = geometry, faces
@@ -332,7 +325,7 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 5, config_path: st
                 evaluator = ExactEvaluator(geometry.focused_setup(focused_params(config.radar_loss)),
                                            radar_from_index(dataset.index), geometry.view_index, verts, faces, tfaces)
             else:
-                evaluator = RawEvaluator(geometry, dataset.index, sample, faces_t, target)
+                evaluator = RawEvaluator(geometry, sample, faces_t, target)
             measured = measure_sample(evaluator, families, tfaces)
             measured["seconds"] = time.perf_counter() - start
             per[f"{loss}_{target}"].append(measured)

@@ -52,12 +52,12 @@ def synthetic_batch(batch_size: int, geometry: DatasetGeometry, radar: RadarPara
     sphere = trimesh.creation.icosphere(4)
     verts = [torch.tensor(sphere.vertices * rng.uniform(40, 60, 3), dtype=torch.float32) for _ in range(batch_size)]
     faces = torch.tensor(sphere.faces)
-    ex, ey = radar.aperture[0] // radar.echo_decimation[0], radar.aperture[1] // radar.echo_decimation[1]
     echo = torch.stack([torch.stack([echo_torch(v, faces, geometry.positions[k], geometry.freqs, radar)
-                                     .reshape(ex, ey, -1) for k in range(len(geometry.view_names))]) for v in verts])
+                                     for k in range(len(geometry.view_names))]) for v in verts])  # (B, V, M, F)
     sar = torch.rand(batch_size, len(geometry.view_names), 2, 128, 128, generator=torch.Generator().manual_seed(0))
-    out = {"verts": verts, "faces": [faces] * batch_size, "echo": echo, "sar": sar,
-           "sample_id": [str(k) for k in range(batch_size)]}
+    # the echo where the raw and profile losses read it: echo_clean on the loss grid, else the echo grid's
+    out = {"verts": verts, "faces": [faces] * batch_size, "echo_clean" if geometry.full_radar else "echo": echo,
+           "sar": sar, "sample_id": [str(k) for k in range(batch_size)]}
     if geometry.full_radar is not None:
         from meshsar_builder.trainer.train import focused_params
 
@@ -92,8 +92,8 @@ def radar_ms_per_sample(config: TrainConfig, geometry: DatasetGeometry, batch: d
             loss = L.focused_radar_loss(L.smooth_gradient(v, edges, rc.smooth_iterations), faces_t, targets,
                                         geometry.focused_setup(params), mode=rc.mode)
         else:
-            echo = batch["echo"][:size, geometry.view_index]
-            echo = echo.reshape(*echo.shape[:2], -1, echo.shape[-1])
+            echo = geometry.echo_targets({k: v[:size] for k, v in batch.items() if k.startswith("echo")},
+                                         "clean" if geometry.full_radar else "recorded")
             positions = geometry.positions
             if 0 < rc.antennas < positions.shape[1]:
                 positions, echo = positions[:, : rc.antennas], echo[:, :, : rc.antennas]

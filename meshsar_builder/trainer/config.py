@@ -61,7 +61,8 @@ class RadarLossConfig:
     focused from the loss-grid echo (echo_clean, or the recorded noisy echo) and the
     prediction from an image-domain splat of the predicted mesh (radar/focused.py).
     "depth" (default.toml's): the same volumes compared by their depth maps (focused.depth_distance, in mm).
-    "raw" (the paper's) and "profile": the relative L1 on the stored decimated echo.
+    "raw" (the paper's) and "profile": the relative L1 between the differentiable echo and the target's
+    echo on the loss grid (DatasetGeometry.echo_targets).
     """
 
     weight: float = 0.1  # 0: the no-radar-loss ablation
@@ -78,8 +79,8 @@ class RadarLossConfig:
     # varies smoothly with its minimum within 2 mm and a basin of about -8..+4 mm.
     mode: str = "profile"
     beta: float = 10.0  # steepness of the soft visibility (raw, profile)
-    # focused and depth: the target's echo, "clean" (echo_clean) or "recorded" (echo_clean plus the
-    # build's noise regenerated from noise_seed; its expected image power is subtracted)
+    # the target's echo, "clean" (echo_clean) or "recorded" (echo_clean plus the build's noise regenerated
+    # from noise_seed; focused and depth subtract its expected image power)
     target: str = "clean"
     focused_lateral_mm: float = 2.5  # voxel size across the view
     focused_range_mm: float = 5.0  # voxel size along the view
@@ -87,7 +88,7 @@ class RadarLossConfig:
     # focused and depth modes: heat-kernel steps applied to its per-vertex gradient (0: none): the raw
     # gradient is high-frequency (cosine to the true direction <= 0.03, issue 28)
     smooth_iterations: int = 0
-    antennas: int = 0  # antennas per view drawn each step (0: every antenna of the echo grid)
+    antennas: int = 0  # raw, profile: antennas per view drawn each step (0: every antenna of the loss grid)
     stage: int = -1  # whose mesh is compared (Python index over stages)
 
     def __post_init__(self):

@@ -168,12 +168,13 @@ def fit_corrected(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, 
     takes model_bias of the fit's mesh off the targets and goes on from the fit for
     params.correction_iterations steps. simulate: as model_bias's (needed only with corrections).
     Returns fit_shape's result of the last round with
-    `rounds`: per correction round, the mean vertex move (mm) and the loss at its end, and
-    `targets` (V, S, H, W), the corrected targets the last round fitted."""
+    `rounds`: per correction round, the mean vertex move (mm) and the loss at its end,
+    `targets` (V, S, H, W), the corrected targets the last round fitted, and `loss_start`, the
+    loss at the start (before the first round's first step; `losses` are the last round's)."""
     if params.corrections and simulate is None:
         raise InputError("fit: model-bias corrections need a simulator of the production echo (simulate)")
     result = fit_shape(model, targets, setup, params)
-    rounds, corrected = [], targets
+    rounds, corrected, start = [], targets, float(result["losses"][0])
     for _ in range(params.corrections):
         corrected = targets - torch.from_numpy(model_bias(result["verts"], model["faces"], setup, simulate))
         previous = result["verts"]
@@ -181,7 +182,7 @@ def fit_corrected(model: dict[str, torch.Tensor], targets: torch.Tensor, setup, 
                            start=result)
         rounds.append({"moved_mm": float(np.linalg.norm(result["verts"] - previous, axis=1).mean()),
                        "loss_end": float(result["losses"][-1])})
-    return {**result, "rounds": rounds, "targets": corrected}
+    return {**result, "rounds": rounds, "targets": corrected, "loss_start": start}
 
 
 def specular_simulator(data: Path, faces: np.ndarray):
@@ -213,10 +214,19 @@ def recorded_loss_echo_at(sample: dict, index: dict, scale: float) -> np.ndarray
 
 
 def noise_scale(index: dict, snr_db: float | None) -> float:
-    """The factor on the build's noise sigma that gives image SNR `snr_db` (None: noise off)."""
+    """The factor on the build's noise sigma that gives image SNR `snr_db` (None: noise off). InputError
+    for a build whose noise is not set by image_snr_db: its per-sample snr_db, or no noise (sigma 0,
+    which no factor scales)."""
     if snr_db is None:
         return 0.0
-    return 10 ** ((float(index["radar"]["image_snr_db"]) - snr_db) / 20)
+    build = index["radar"].get("image_snr_db")
+    if build is None:
+        raw = index["radar"].get("snr_db")
+        raise InputError(f"--snr-db {snr_db:g}: redraws the noise at an image SNR, which needs a build whose noise "
+                         f"is set by [radar] image_snr_db; this build's is "
+                         f"{'off' if raw is None else f'set by snr_db = {raw:g} (per sample)'}: fit its noise as "
+                         "built (--snr-db build) or none (off)")
+    return 10 ** ((float(build) - snr_db) / 20)
 
 
 def _noise(index: dict, snr_db: float | None | str) -> tuple[float, str]:
@@ -241,6 +251,8 @@ def fit_split(data: str | os.PathLike, split: str = "seed-0", params: FitParams 
     if index.get("loss_grid") is None:
         raise InputError(f"{data}: has no loss grid (shards format 2); rebuild it to fit the radar")
     model = shape_model_tensors(data / "ssm" / "model.npz")
+    # a model has as many modes as its variance kept (the demo's 6): fit them all, as fit_held_out does
+    params = dataclasses.replace(params, modes=min(params.modes, model["modes"].shape[0]))
     scale, label = _noise(index, snr_db)
     out = Path(out) if out is not None else data / "fits" / f"{split}-{_name(params, label)}"
     network = _run_rows(Path(run), split) if run is not None else {}
@@ -357,7 +369,7 @@ def _fit_sample(sample: dict, model: dict, params: FitParams, seed: int, index: 
         "z_true": (np.asarray(sample["meta"]["ssm_coeffs"][:k]) / model["sd"][:k].numpy()).tolist()
         if "ssm_coeffs" in sample["meta"] else None,
         "rotation_deg": np.degrees(result["rotation"]).tolist(), "translation_mm": result["translation"].tolist(),
-        "loss_start": float(result["losses"][0]), "loss_end": float(result["losses"][-1]), "loss_truth": float(truth),
+        "loss_start": result["loss_start"], "loss_end": float(result["losses"][-1]), "loss_truth": float(truth),
         "corrections": result["rounds"],
         # the samples share the model's topology: vertex i of the fit against vertex i of the truth
         "correspondence_mm": float(np.linalg.norm(result["verts"] - gt[0], axis=1).mean()),

@@ -67,8 +67,10 @@ class DatasetGeometry:
     """What the model and radar loss need from index.json, for the views in use.
 
     view_index: positions of the used views on the sar/echo view axis; frames (V, 3, 3)
-    rows u, v, w; positions (V, M, 3) mm; centres (V, 3) aperture centres, mm;
-    freqs (Ef,) Hz; radar: the echo-model parameters echo_torch reads.
+    rows u, v, w; positions (V, M, 3) mm and freqs (F,) Hz: where the raw and profile radar
+    losses compare echoes, the loss grid (echo_clean's; a build without one: the echo grid);
+    centres (V, 3) aperture centres, mm; radar: the build's RadarParams, every key its index
+    records (aperture, probes, z0_mm, reflectivity, ...: echo_torch reads them).
     """
 
     view_names: list[str]
@@ -125,22 +127,39 @@ class DatasetGeometry:
             raise InputError(f"[data] views: {missing} not in the dataset's views {names}")
         picked = [index["views"][names.index(v)] for v in chosen]
         frames = np.array([[v["u"], v["v"], v["w"]] for v in picked], dtype=np.float64)
-        r = index["radar"]
-        radar = RadarParams(slope_hz_per_s=r["slope_hz_per_s"], rvp=r["rvp"], p=r["p"], kappa=r["kappa"])
-        grid = index["echo_grid"]
+        from meshsar_builder.radar.focused import radar_from_index
+
+        # All of the build's radar keys: a default z0_mm, aperture or reflectivity in the loss's echo
+        # would compare the prediction with an echo simulated otherwise (or find no aperture centre).
+        radar = radar_from_index(index)
+        loss_grid = "loss_grid" in index and "loss_decimation" in index["radar"]
+        grid = index["loss_grid" if loss_grid else "echo_grid"]
         return cls(
             view_names=chosen, view_index=[names.index(v) for v in chosen], frames=frames,
             fov_mm=float(index["fov_mm"]),
             positions=np.array([grid["positions_mm"][v] for v in chosen], dtype=np.float64),
-            centres=float(r["z0_mm"]) * frames[:, 2], freqs=np.array(grid["frequencies_hz"], dtype=np.float64),
-            radar=radar, full_radar=_full_radar(index),
+            centres=radar.z0_mm * frames[:, 2], freqs=np.array(grid["frequencies_hz"], dtype=np.float64),
+            radar=radar, full_radar=radar if loss_grid else None,
         )
 
-
-def _full_radar(index: dict) -> RadarParams | None:
-    from meshsar_builder.radar.focused import radar_from_index
-
-    return radar_from_index(index) if "loss_grid" in index and "loss_decimation" in index["radar"] else None
+    def echo_targets(self, batch: dict, target: str) -> torch.Tensor:
+        """(B, V, M, F) complex: what the raw and profile radar losses compare with, at positions and freqs:
+        target "clean", echo_clean (DESIGN section 10), or "recorded", the recorded echo on the loss grid
+        (batch echo_noisy: MeshSARDataset(noisy_loss_echo=True)). A build without a loss grid holds only its
+        recorded echo on the echo grid: "recorded" reads that."""
+        if self.full_radar is None:
+            if target == "clean":
+                raise InputError('[radar_loss] target = "clean" needs a build with a loss grid (shards format 2, '
+                                 'echo_clean); rebuild the data, or set target = "recorded"')
+            echo = batch["echo"]
+        elif target == "clean":
+            echo = batch["echo_clean"]
+        elif "echo_noisy" in batch:
+            echo = batch["echo_noisy"]
+        else:
+            raise InputError('[radar_loss] target = "recorded": the batch has no echo_noisy')
+        echo = echo[:, self.view_index]  # (B, V, Lx, Ly, F)
+        return echo.reshape(*echo.shape[:2], -1, echo.shape[-1])  # rows as positions
 
 
 def validation_split(root: Path, index: dict, split_seed_: int, fraction: float) -> tuple[list[str], list[str]]:
@@ -235,8 +254,7 @@ def batch_losses(meshes: list[tuple[torch.Tensor, torch.Tensor]], model: SAR2Mes
         else:
             terms["radar"] = radar_weight * relative
     elif radar_weight > 0:
-        echo = batch["echo"][:, geometry.view_index]
-        echo = echo.reshape(*echo.shape[:2], -1, echo.shape[-1])  # (B, V, M, Ef), rows as positions_mm
+        echo = geometry.echo_targets(batch, rc.target)  # (B, V, M, F)
         positions = geometry.positions
         if 0 < rc.antennas < positions.shape[1]:
             pick = torch.randperm(positions.shape[1], generator=generators[0])[: rc.antennas].numpy()
@@ -498,7 +516,7 @@ def train(config: TrainConfig | str | os.PathLike, data: str | os.PathLike, spli
     index = read_index(data)
     geometry = DatasetGeometry.from_index(index, config.data.views)
     train_ids, val_ids = validation_split(data, index, seed_, config.data.val_fraction)
-    recorded = config.radar_loss.mode in L.FOCUSED_MODES and config.radar_loss.target == "recorded"
+    recorded = config.radar_loss.target == "recorded" and geometry.full_radar is not None
     every = MeshSARDataset(data, "train", seed=seed_, channels=list(config.data.channels), noisy_loss_echo=recorded)
     train_set, val_set = Subset(every, train_ids), Subset(every, val_ids)
     state = load_checkpoint(run / CHECKPOINT, device) if (run / CHECKPOINT).exists() else None
