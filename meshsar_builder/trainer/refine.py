@@ -2,9 +2,10 @@
 
 The network's prediction is the start; the focused radar loss (radar/focused.py) against the
 sample's recorded echo on the loss grid, its gradient smoothed on the mesh as in training, moves
-it, with the Laplacian term against the prediction holding the fine shape the network gave.
-Only the recorded echo and the radar parameters enter ([refine] in the trainer config).
-"""
+it, by a budget of small steps (the smoothing and the budget keep the fine shape the network gave;
+the Laplacian term against the prediction is about 1e-4 of the radar term at the default weight,
+docs/trainer.md). Only the recorded echo and the radar parameters enter ([refine] in the trainer
+config)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ def refine_mesh(verts: np.ndarray, faces: torch.Tensor, edges: torch.Tensor, tar
     coordinate unit (half the field of view), in which the Laplacian term is taken as in
     training. Each step takes the gradient of the focused loss, smoothed on the mesh
     (losses.smooth_gradient), plus laplacian_weight times the Laplacian term against the
-    prediction (so the fine shape the network gave stays), and moves every vertex along it,
+    prediction (in unit_mm units, squared: weak at weight 1), and moves every vertex along it,
     the one that moves most by step_mm: a normalised step keeps the smoothed gradient's shape,
     where Adam would rescale each coordinate on its own. Returns the refined verts (n, 3)
     float64 and the loss before each step and after the last.
