@@ -48,7 +48,8 @@ def run(ctx: Context, item: Item) -> dict:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InputWarning)
         labels, affine = read_label_map(li.path, li.table, require_affine, t=li.t)
-    surf = labels_to_surface(labels, affine, list(structures), ctx.recipe.meshing, name=li.path)
+    name = li.path if li.t is None else f"{li.path} (T index {li.t})"
+    surf = labels_to_surface(labels, affine, list(structures), ctx.recipe.meshing, name=name)
     motion = {}
     if li.frame is not None and (labels == STRUCTURES["myo"]).any():
         # Frames of a cycle: apex and base plane along the stack's slice normal (the long axis
@@ -87,4 +88,6 @@ def run(ctx: Context, item: Item) -> dict:
 # Version 9: flat_ends on by default again: with track v15's ring points the flat bases track as well as rounded ones.
 # Version 10: a structure missing from the map or lying apart from the rest fails the item (meshing._pieces_apart);
 # the landmarks' long axis turned toward the apex by the ventricle's shape, not by the file's slice order.
-STAGE = Stage(name=NAME, version=10, plan=plan, run=run)
+# Version 11: a chamber cut by the map's border over more than max_border_mm2 fails the item (label_repair.
+# check_border), and a 4-D frame's errors name its T index.
+STAGE = Stage(name=NAME, version=11, plan=plan, run=run)

@@ -41,7 +41,7 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 3, split: str = "s
     from meshsar_builder.trainer.fit import FitParams, fit_corrected, shape_model_tensors, specular_simulator
     from meshsar_builder.trainer.model import icosphere_levels
     from meshsar_builder.trainer.refine import sample_refiner
-    from meshsar_builder.trainer.train import DatasetGeometry
+    from meshsar_builder.trainer.dataset_geometry import DatasetGeometry
 
     data = Path(data)
     if not (data / "index.json").exists():

@@ -276,7 +276,8 @@ def run(out_dir: str | Path, data: str | Path, samples: int = 5, config_path: st
     from meshsar_builder.trainer.config import load_config
     from meshsar_builder.trainer.model import icosphere_levels
     from meshsar_builder.radar.focused import radar_from_index
-    from meshsar_builder.trainer.train import DatasetGeometry, focused_params
+    from meshsar_builder.trainer.dataset_geometry import DatasetGeometry
+    from meshsar_builder.trainer.train import focused_params
 
     data = Path(data)
     unknown = sorted(set(losses) - set(LOSSES))

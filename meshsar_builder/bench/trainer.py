@@ -31,8 +31,8 @@ from meshsar_builder.radar.differentiable import echo_torch
 from meshsar_builder.radar.imaging import ImageParams
 from meshsar_builder.radar.params import RadarParams, index_metadata
 from meshsar_builder.trainer.config import TrainConfig
+from meshsar_builder.trainer.dataset_geometry import DatasetGeometry
 from meshsar_builder.trainer.train import (
-    DatasetGeometry,
     autocast_factory,
     build_model,
     load_config,

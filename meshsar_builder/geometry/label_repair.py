@@ -17,7 +17,8 @@ Whatever handle is left is cut or filled on the meshing grid (`correct_handles`)
 changes fewer voxels. Every step returns what it changed, for the sidecar.
 
 On the meshed surface of a biventricular map, `lv_gaps_to_myo` relabels the LV's patches other
-than its basal cut (gaps in the myocardium's labels) as myocardium.
+than its basal cut (gaps in the myocardium's labels) as myocardium. Before any of it, `check_border`
+refuses a map whose field of view cuts a chamber off.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from skimage.measure import euler_number
 from meshsar_builder.geometry.digital_topology import ball_core, filled_solid
 from meshsar_builder.geometry.measures import vertex_areas
 from meshsar_builder.geometry.structures import STRUCTURES
+from meshsar_builder.pipeline.errors import MeshError
 
 # Pairs of structures that anatomy joins: their contact is kept and the unlabelled wall between
 # them filled. Valve planes (mitral, aortic, tricuspid, pulmonary), the septa, the myocardium
@@ -282,3 +284,46 @@ def lv_gaps_to_myo(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> 
             out[members] = myo
             relabelled.append({"vertices": int(members.sum()), "area_mm2": round(area, 1)})
     return out, relabelled
+
+
+def border_sections(chosen: np.ndarray, voxel_mm: np.ndarray, skip_axis: int | None = None) -> dict[str, dict[str, float]]:
+    """{structure: {face: mm^2}}: how much of each chamber (CHAMBERS) lies on each face of the label map's box.
+
+    chosen : (X, Y, Z) uint8 canonical ids, voxel_mm : (3,). Faces are named by voxel axis and end ("axis 2
+    first", "axis 0 last"); skip_axis: an axis whose ends are not looked at (a thick-slice stack's slice axis,
+    whose ends cut the shape by design)."""
+    out: dict[str, dict[str, float]] = {}
+    for axis in range(3):
+        if axis == skip_axis:
+            continue
+        pixel_mm2 = float(np.prod(np.delete(voxel_mm, axis)))
+        for end, index in (("first", 0), ("last", chosen.shape[axis] - 1)):
+            face = np.take(chosen, index, axis=axis)
+            for name in CHAMBERS:
+                count = int((face == STRUCTURES[name]).sum())
+                if count:
+                    out.setdefault(name, {})[f"axis {axis} {end}"] = round(count * pixel_mm2, 1)
+    return out
+
+
+def check_border(chosen: np.ndarray, voxel_mm: np.ndarray, skip_axis: int | None, limit_mm2: float, name: str) -> None:
+    """MeshError where the label map's border cuts a chamber over more than limit_mm2 (border_sections): the
+    surface would close flat on the border, a heart with a part missing that every later stage would accept."""
+    cut = {s: faces for s, faces in border_sections(chosen, voxel_mm, skip_axis).items()
+           if max(faces.values()) > limit_mm2}
+    if cut:
+        raise MeshError(f"{name}: the label map's border cuts the heart: {cut} (mm^2 of each structure on each face "
+                        f"of the voxel box; limit {limit_mm2:g}): its field of view leaves a part out, and the surface "
+                        f"would close flat there. Use a map that holds the whole heart, or set [meshing] "
+                        f"max_border_mm2 to accept it")
+
+
+def repair_summary(record: dict) -> str:
+    """Every step the repair took, for a failure's message (a failed item writes no sidecar to read it in)."""
+    labels = [f"{s} {c['holes_filled']} hole vox filled, {c['islands_dropped']} islands ({c['island_voxels']} vox) dropped"
+              for s, c in record.get("labels", {}).items()]
+    walls = [f"{'-'.join(w['structures'])} {w['voxels']} vox" for w in record.get("walls_filled", [])]
+    contacts = [f"{'-'.join(c['structures'])} {c['voxels']} vox" for c in record.get("contacts_cut", [])]
+    handles = [f"{h['kind']} {h['voxels']} vox at {h['position_mm']} ({'/'.join(h['structures'])})" for h in record.get("handles", [])]
+    return (f"Euler characteristic before {record.get('euler_before', '?')}; labels cleaned: {labels or 'none'}; "
+            f"walls filled: {walls or 'none'}; contacts cut: {contacts or 'none'}; handles: {handles or 'none'}")

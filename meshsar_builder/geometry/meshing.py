@@ -21,7 +21,8 @@ from skimage.graph import MCP_Geometric
 from meshsar_builder.geometry.closest import point_to_surface
 from meshsar_builder.geometry.digital_topology import ball_core
 from meshsar_builder.geometry.label_repair import (
-    CHAMBERS, clean_labels, correct_handles, fill_junction_walls, lv_gaps_to_myo, separate_contacts)
+    CHAMBERS, check_border, clean_labels, correct_handles, fill_junction_walls, lv_gaps_to_myo, repair_summary,
+    separate_contacts)
 from meshsar_builder.geometry.structures import STRUCTURES
 from meshsar_builder.pipeline.errors import InputError, MeshError
 
@@ -52,6 +53,9 @@ class MeshingParams:
     # A thick-slice stack that cuts the shape (its base) ends flat at its last slice's face (_cut_flat): the
     # volume within 2 % where the interpolation alone rounds the base 1-2 % short (docs/topology.md).
     flat_ends: bool = True
+    # A chamber (or the myocardium) cut by the map's border over more than this (mm^2) fails the item (label_repair.
+    # check_border; not a thick-slice stack's slice ends: its cut base); inf: no check.
+    max_border_mm2: float = 20.0
 
     def __post_init__(self):
         if not self.spacing_mm > 0:
@@ -67,6 +71,8 @@ class MeshingParams:
         for key in ("gap_mm", "wall_mm", "max_surface_shift_mm"):
             if not 0 <= getattr(self, key) <= 20:
                 raise ValueError(f"{key}: must be in [0, 20] mm, got {getattr(self, key)}")
+        if not self.max_border_mm2 >= 0:
+            raise ValueError(f"max_border_mm2: must be >= 0, got {self.max_border_mm2}")
         for key in ("island_fraction", "max_volume_change"):
             if not 0 <= getattr(self, key) < 1:
                 raise ValueError(f"{key}: must be in [0, 1), got {getattr(self, key)}")
@@ -284,6 +290,9 @@ def labels_to_surface(
         raise InputError(f"{name}: the structures {missing} are missing from the label map (found: {present}); a "
                          f"surface without them would not be the anatomy asked for: list only the structures every "
                          f"map has")
+    voxel_mm = np.linalg.norm(affine[:3, :3], axis=0)
+    thick = voxel_mm.max() >= THICK_SLICE_RATIO * voxel_mm.min()  # a stack's ends cut the shape by design (flat_ends)
+    check_border(chosen, voxel_mm, int(np.argmax(voxel_mm)) if thick else None, params.max_border_mm2, name)
     union = ndimage.binary_fill_holes(chosen > 0)
     pieces = _pieces_apart(union, chosen, affine, structures, params.island_fraction, name)
     plain = contour(iso_grid(union, affine, params, name))
@@ -312,7 +321,7 @@ def labels_to_surface(
     record["handles"] = handles
     if not ok:
         raise MeshError(f"{name}: surface is not closed genus 0 (euler={euler}, watertight={watertight}) after "
-                        f"topology repair; handles left at {_handles_left(grid, repaired)}; {_summary(record)}")
+                        f"topology repair; handles left at {_handles_left(grid, repaired)}; {repair_summary(record)}")
     record.update(_repair_figures(chosen, np.where(walls, 0, repaired), handles, gaps, verts, faces, plain, affine, params))
     _check_repair(record, name, params)
     return _surface(verts, faces, nearest_labels(verts, repaired, repaired > 0, affine), record)
@@ -481,13 +490,7 @@ def _check_repair(record: dict, name: str, params: MeshingParams) -> None:
         raise MeshError(
             f"{name}: topology repair too large: volume change {over or 'within bounds'} "
             f"(limit {params.max_volume_change:.0%}), surface shift {record['surface_shift_mm']} mm "
-            f"(limit {params.max_surface_shift_mm} mm); repair: {_summary(record)}")
-
-
-def _summary(record: dict) -> str:
-    contacts = [f"{'-'.join(c['structures'])} {c['voxels']} vox" for c in record.get("contacts_cut", [])]
-    handles = [f"{h['kind']} {h['voxels']} vox at {h['position_mm']} ({'/'.join(h['structures'])})" for h in record.get("handles", [])]
-    return f"contacts cut: {contacts or 'none'}; handles: {handles or 'none'}"
+            f"(limit {params.max_surface_shift_mm} mm); repair: {repair_summary(record)}")
 
 
 def trim_vessels(labels: np.ndarray, affine: np.ndarray, lengths: dict[str, float], name: str = "label map") -> np.ndarray:

@@ -33,7 +33,8 @@ from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
 from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics, occupancy_surface, voxelise
 from meshsar_builder.trainer.model import icosphere_levels
 from meshsar_builder.trainer.refine import sample_refiner
-from meshsar_builder.trainer.train import DatasetGeometry, Subset, load_run, pick_device, split_seed
+from meshsar_builder.trainer.dataset_geometry import DatasetGeometry
+from meshsar_builder.trainer.train import Subset, load_run, pick_device, split_seed
 
 BASELINES = ("template", "mean_shape")
 HIGHER_IS_BETTER = {"dice", "jaccard"}

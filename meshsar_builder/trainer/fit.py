@@ -58,7 +58,7 @@ from meshsar_builder.radar.noise import recorded_echo
 from meshsar_builder.trainer.config import split_seed
 from meshsar_builder.trainer.evaluate import BASELINES, markdown, summarise, write_csv
 from meshsar_builder.trainer.metrics import COLUMNS, mesh_metrics
-from meshsar_builder.trainer.train import DatasetGeometry
+from meshsar_builder.trainer.dataset_geometry import DatasetGeometry
 
 
 @dataclasses.dataclass(frozen=True)

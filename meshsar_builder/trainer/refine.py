@@ -14,7 +14,8 @@ import torch
 
 from meshsar_builder.radar.focused import focused_loss
 from meshsar_builder.trainer import losses as L
-from meshsar_builder.trainer.train import DatasetGeometry, focused_params
+from meshsar_builder.trainer.dataset_geometry import DatasetGeometry
+from meshsar_builder.trainer.train import focused_params
 
 
 def refine_mesh(verts: np.ndarray, faces: torch.Tensor, edges: torch.Tensor, targets: torch.Tensor, setup,
