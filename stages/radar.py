@@ -52,13 +52,15 @@ def dataset_meshes(ctx: Context, results: Results) -> list[tuple[str, str, dict]
                     "subset": "ssm", "ssm_coeffs": s["coeffs"], "shape_model": rec["shape_model"]}
             out.append((sid, str(ctx.stage_dir("sources") / name / f"{sid}.ply"), meta))
     cohorts = source_cohorts(ctx.recipe.sources)
-    direct = direct_meshes(results.of("remesh"))
+    direct = direct_meshes(results.of("remesh"), cohorts)
     reference = {mid: ref for mids, ref in subject_series(direct, cohorts) for mid in mids}
     tracked = {mid: (rec, report) for rec in results.of("track").values() for mid, report in rec["frames"].items()}
     for mid, rec in direct.items():
         meta = {k: rec[k] for k in ("source", "subject", "frame", "phase", "cycle_fraction", "provenance")}
         if rec["source"] in cohorts:  # sources sharing subject names: splits group across them
             meta["cohort"] = cohorts[rec["source"]]
+        if rec.get("replaces"):  # the cohort's other maps of this frame, left out (direct_meshes)
+            meta["replaces"] = rec["replaces"]
         if rec["frame"] is not None or rec["phase"]:  # a frame: the heart frame of its subject's reference
             meta["reference_frame"] = reference[mid]
         path = ctx.stage_dir("remesh") / f"{mid}.ply"

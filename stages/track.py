@@ -39,7 +39,8 @@ def plan(ctx: Context, results: Results) -> list[Item]:
     params = dataclasses.asdict(ctx.recipe.registration)
     remeshed = ctx.stage_dir("remesh")
     items = []
-    for mids, reference in subject_series(direct_meshes(results.of("remesh")), source_cohorts(ctx.recipe.sources)):
+    cohorts = source_cohorts(ctx.recipe.sources)
+    for mids, reference in subject_series(direct_meshes(results.of("remesh"), cohorts), cohorts):
         if len(mids) < 2:
             continue
         ref = mids.index(reference)

@@ -14,6 +14,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
+from meshsar_builder.dataset.frames import direct_meshes, subject_series
 from meshsar_builder.dataset.label_maps import InputWarning, LabelItem, n_frames, read_label_map
 from meshsar_builder.dataset.sources import ACDC_TABLE, SourceSpec, index_acdc, index_nifti
 from meshsar_builder.geometry.structures import STRUCTURES
@@ -441,3 +442,31 @@ def test_a_build_meshes_each_frame_of_a_4d_map(tmp_path, tmp_recipe):
     assert vols[1] < vols[2] < vols[0]  # each item meshed its own T index
     assert [(r["frame"], r["phase"]) for r in recs] == [(0, "ED"), (1, "ES"), (2, "")]
     assert [nib.load(str(tmp_path / "data" / "s1_cine.nii.gz")).shape[3]] == [3]
+
+
+def _remeshed(source: str, frame: int, phase: str = "", provenance: str = "annotated", subject: str = "p01") -> dict:
+    return {"source": source, "subject": subject, "frame": frame, "phase": phase, "provenance": provenance,
+            "use": "direct", "cycle_fraction": None}
+
+
+def test_a_frame_two_sources_of_a_cohort_give_enters_once_the_annotated_one():
+    """An annotated table (ED, ES) and a 4-D prediction of every frame, one cohort: frame 0 and 2 came twice, so a
+    6-frame cycle had 8 entries and one physical frame two samples. Now the annotated map is kept (the other named
+    in its record); two annotated maps of a frame, or ED at two frame numbers (1-based against 0-based), are named."""
+    records = {"gt-p01-f00": _remeshed("gt", 0, "ED"), "gt-p01-f02": _remeshed("gt", 2, "ES"),
+               **{f"pred-p01-f{t:02d}": _remeshed("pred", t, "ED" if t == 0 else "", "predicted") for t in range(6)},
+               "other-p02-f00": _remeshed("other", 0, "ED", subject="p02")}
+    cohorts = {"gt": "cine", "pred": "cine"}
+    kept = direct_meshes(records, cohorts)
+    assert sorted(kept) == ["gt-p01-f00", "gt-p01-f02", "other-p02-f00", "pred-p01-f01", "pred-p01-f03",
+                            "pred-p01-f04", "pred-p01-f05"]
+    assert kept["gt-p01-f00"]["replaces"] == ["pred-p01-f00"] and "replaces" not in kept["pred-p01-f01"]
+    assert [len(mids) for mids, _ in subject_series(kept, cohorts)] == [6, 1]
+    assert len(direct_meshes(records)) == len(records)  # no cohort: sources' subjects are their own
+    one_based = {**records, "gt-p01-f00": _remeshed("gt", 1, "ED")}
+    del one_based["gt-p01-f02"]
+    with pytest.raises(InputError, match=r"cohort 'cine': subject 'p01' has its ED frame at gt frame 1 "
+                                         r"\(gt-p01-f00\), pred frame 0 \(pred-p01-f00\)"):
+        direct_meshes(one_based, cohorts)
+    with pytest.raises(InputError, match=r"gt-p01-f02 and pred-p01-f02 both give subject 'p01' frame 2"):
+        direct_meshes({**records, "pred-p01-f02": _remeshed("pred", 2)}, cohorts)

@@ -263,13 +263,16 @@ def test_a_cohort_travels_from_the_recipe_through_meta_and_index_to_the_split(tm
                      '[[sources]]\nkind = "nifti"\nname = "pred"\npath = "b"\nlabels = { lv = 1 }\ncohort = "cine"\n'
                      '[[sources]]\nkind = "nifti"\nname = "other"\npath = "c"\nlabels = { lv = 1 }\n')
     remesh = {f"{src}-p{k}-f{f:02d}": {"use": "direct", "source": src, "subject": f"p{k}", "frame": f, "phase": "",
-                                        "cycle_fraction": None, "provenance": "annotated"}
+                                        "cycle_fraction": None,
+                                        "provenance": "predicted" if src == "pred" else "annotated"}
               for src in ("gt", "pred", "other") for k in range(6) for f in range(3 if src == "pred" else 1)}
     results = SimpleNamespace(of=lambda stage: remesh if stage == "remesh" else {})
     ctx = SimpleNamespace(recipe=recipe, stage_dir=lambda name: tmp_path / name)
     metas = {sid: meta for sid, _, meta in dataset_meshes(ctx, results)}
     assert metas["gt-p0-f00"]["cohort"] == metas["pred-p0-f02"]["cohort"] == "cine"
     assert "cohort" not in metas["other-p0-f00"]  # no cohort: the meta is as it was
+    # frame 0 of each patient, given by both: the annotated map, once
+    assert metas["gt-p0-f00"]["replaces"] == ["pred-p0-f00"] and "pred-p0-f00" not in metas
     ids = list(metas)
     index = build_index(recipe="c", recipe_sha256="0" * 64, code_version="test", metadata=METADATA, shard_size=64,
                         shards=[{"file": "shards/shard-00000.npz", "n": len(ids), "sha256": "0" * 64, "sample_ids": ids}],
@@ -279,7 +282,7 @@ def test_a_cohort_travels_from_the_recipe_through_meta_and_index_to_the_split(tm
         split = make_split(index, seed, {"train": 0.5, "test": 0.5})
         assert subject_leaks(split, index["samples"]) == {}
         part = {sid: n for n in names(split) for sid in split[n]}
-        assert all(part[f"gt-p{k}-f00"] == part[f"pred-p{k}-f{f:02d}"] for k in range(6) for f in range(3))
+        assert all(part[f"gt-p{k}-f00"] == part[f"pred-p{k}-f{f:02d}"] for k in range(6) for f in (1, 2))
 
 
 def test_a_negative_seed_is_refused_by_the_command_line(tmp_path, capsys):

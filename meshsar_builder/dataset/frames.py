@@ -229,9 +229,40 @@ def source_cohorts(sources) -> dict[str, str]:
     return {s.name: s.cohort for s in sources if getattr(s, "cohort", "")}
 
 
-def direct_meshes(remeshed: dict[str, dict]) -> dict[str, dict]:
-    """The remesh records of sources with `use = "direct"` (every frame goes to the dataset)."""
-    return {mid: rec for mid, rec in remeshed.items() if rec["use"] == "direct"}
+def direct_meshes(remeshed: dict[str, dict], cohorts: dict[str, str] | None = None) -> dict[str, dict]:
+    """The remesh records of sources with `use = "direct"` (every frame goes to the dataset), each frame of a
+    cohort's subject once.
+
+    cohorts : {source: cohort} (source_cohorts). Where sources of one cohort give one subject's frame (one
+    frame number) twice, the annotated map is kept over a predicted one, and its record names the other
+    (`replaces`); two annotated maps of one frame, or one phase (ED, ES) at two frame numbers (the sources
+    number frames differently), are an InputError naming both."""
+    direct = {mid: rec for mid, rec in remeshed.items() if rec["use"] == "direct"}
+    claims: dict[tuple, list[str]] = {}
+    for mid in sorted(direct):
+        rec = direct[mid]
+        cohort = (cohorts or {}).get(rec["source"])
+        if cohort and rec["frame"] is not None:
+            claims.setdefault((cohort, rec["subject"], "frame", rec["frame"]), []).append(mid)
+            if rec["phase"]:
+                claims.setdefault((cohort, rec["subject"], "phase", rec["phase"]), []).append(mid)
+    for (cohort, subject, kind, value), mids in claims.items():
+        if kind == "phase" and len({direct[m]["frame"] for m in mids}) > 1:
+            frames = ", ".join(f"{direct[m]['source']} frame {direct[m]['frame']} ({m})" for m in mids)
+            raise InputError(f"cohort {cohort!r}: subject {subject!r} has its {value} frame at {frames}: the cohort's "
+                             f"sources must number one subject's frames alike (a 4-D map's by T index, from 0)")
+    for (cohort, subject, kind, value), mids in claims.items():
+        if kind == "frame" and len(mids) > 1:
+            annotated = [m for m in mids if direct[m]["provenance"] != "predicted"]
+            if len(annotated) > 1:
+                raise InputError(f"cohort {cohort!r}: {' and '.join(annotated)} both give subject {subject!r} frame "
+                                 f"{value}, neither predicted")
+            keep = annotated[0] if annotated else mids[0]
+            direct[keep] = {**direct[keep], "replaces": [m for m in mids if m != keep]}
+            for m in mids:
+                if m != keep:
+                    direct.pop(m)
+    return direct
 
 
 def subject_series(records: dict[str, dict], cohorts: dict[str, str] | None = None) -> list[tuple[list[str], str]]:
