@@ -37,7 +37,7 @@ spacing_mm = {spacing}
 
 def nifti_folder(root: Path, n_good: int = 2) -> Path:
     for i in range(n_good):
-        mask, affine = ball_volume((40, 40, 40), (1, 1, 1), 10 + 2 * i)
+        mask, affine = ball_volume((48, 48, 48), (1, 1, 1), 10 + 2 * i)  # inside the box: the border cuts none
         save_nifti(root / f"good{i}.nii.gz", mask.astype(np.int16), affine)
     return root
 
