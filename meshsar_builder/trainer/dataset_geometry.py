@@ -56,13 +56,8 @@ class DatasetGeometry:
         for k, sid in enumerate(batch["sample_id"]):
             key = (params, target, sid)
             if key not in self._targets:
-                if target == "clean":
-                    echo, sigma = batch["echo_clean"][k][self.view_index], 0.0
-                else:
-                    if "echo_noisy" not in batch:
-                        raise InputError('[radar_loss] target = "recorded": the batch has no echo_noisy')
-                    echo = batch["echo_noisy"][k][self.view_index]
-                    sigma = batch["noise_sigma"][k][self.view_index].numpy()
+                echo = self._loss_grid_echo(batch, target)[k][self.view_index]
+                sigma = 0.0 if target == "clean" else batch["noise_sigma"][k][self.view_index].numpy()
                 self._targets[key] = torch.from_numpy(setup.target(echo.numpy(), sigma))
             out.append(self._targets[key])
         return torch.stack(out)
@@ -96,16 +91,17 @@ class DatasetGeometry:
         target "clean", echo_clean (DESIGN section 10), or "recorded", the recorded echo on the loss grid
         (batch echo_noisy: MeshSARDataset(noisy_loss_echo=True)). A build without a loss grid holds only its
         recorded echo on the echo grid: "recorded" reads that."""
-        if self.full_radar is None:
-            if target == "clean":
-                raise InputError('[radar_loss] target = "clean" needs a build with a loss grid (shards format 2, '
-                                 'echo_clean); rebuild the data, or set target = "recorded"')
-            echo = batch["echo"]
-        elif target == "clean":
-            echo = batch["echo_clean"]
-        elif "echo_noisy" in batch:
-            echo = batch["echo_noisy"]
-        else:
+        if self.full_radar is None and target == "clean":
+            raise InputError('[radar_loss] target = "clean" needs a build with a loss grid (shards format 2, '
+                             'echo_clean); rebuild the data, or set target = "recorded"')
+        echo = (batch["echo"] if self.full_radar is None else self._loss_grid_echo(batch, target))[:, self.view_index]
+        return echo.reshape(*echo.shape[:2], -1, echo.shape[-1])  # (B, V, M, F): rows as positions
+
+    @staticmethod
+    def _loss_grid_echo(batch: dict, target: str) -> torch.Tensor:
+        """The batch's echo on the loss grid for a radar loss's target: echo_clean, or echo_noisy (recorded)."""
+        if target == "clean":
+            return batch["echo_clean"]
+        if "echo_noisy" not in batch:
             raise InputError('[radar_loss] target = "recorded": the batch has no echo_noisy')
-        echo = echo[:, self.view_index]  # (B, V, Lx, Ly, F)
-        return echo.reshape(*echo.shape[:2], -1, echo.shape[-1])  # rows as positions
+        return batch["echo_noisy"]
