@@ -245,6 +245,7 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
     verts, faces, parent = echo_facets(verts, faces, radar)
     tri = verts[faces]
     areas = facet_geometry(verts, faces)[2]
+    face_areas = None if parent is None else np.bincount(parent, areas)  # of the faces split
     points = scatterer_points(verts, faces, radar.facet, rng)
     seeds = draw_seeds(rng, len(radar.views))
     intersector = embree_intersector(verts, faces)
@@ -263,7 +264,8 @@ def render_sample(verts: np.ndarray, faces: np.ndarray, radar: RadarParams, imag
         t1 = time.perf_counter()
         seen = vis > 0
         # a split face is as visible as its parts, by area
-        face_vis = None if parent is None else np.bincount(parent, vis * areas) / np.bincount(parent, areas)
+        face_vis = None if parent is None else np.divide(np.bincount(parent, vis * areas), face_areas,
+                                                         out=np.zeros(len(face_areas)), where=face_areas > 0)
         signal, diffuse_power, n_scatterers = _view_signal(tri, points, diffuse, vis, radar, view, freqs, view_echo,
                                                            echo_indices, face_vis)
         t2 = time.perf_counter()
