@@ -229,6 +229,28 @@ def test_more_modes_than_the_model_has_fit_them_all(fitted, tmp_path):
     assert fits["params"]["modes"] == 1 and [len(r["z"]) for r in fits["samples"].values()] == [1]
 
 
+def test_a_sample_whose_fit_fails_is_named_and_the_others_go_on(fitted, tmp_path, monkeypatch):
+    """A correction round's mesh that drifted out of the images is refused by the radar (ValueError): that sample is
+    named in fits.json and summary.md, the others are fitted, and a rerun tries it again."""
+    data, _ = fitted
+    real = F._fit_sample
+
+    def refusing(sample, *args):
+        if sample["sample_id"] == "s2":
+            raise ValueError("verts: the mesh reaches 91.0 mm from the heart centre along the left view's u axis")
+        return real(sample, *args)
+
+    monkeypatch.setattr(F, "_fit_sample", refusing)
+    params = FitParams(modes=1, iterations=2, corrections=0)
+    fit_split(data, params=params, samples=200, limit=3, out=tmp_path, progress=False)
+    fits = read_json(tmp_path / "fits.json")
+    assert sorted(fits["samples"]) == ["s1", "s3"] and list(fits["failed"]) == ["s2"]
+    assert "s2 failed: ValueError: verts: the mesh reaches 91.0 mm" in (tmp_path / "summary.md").read_text()
+    monkeypatch.setattr(F, "_fit_sample", real)
+    fit_split(data, params=params, samples=200, limit=3, out=tmp_path, progress=False)
+    assert sorted(read_json(tmp_path / "fits.json")["samples"]) == ["s1", "s2", "s3"]
+
+
 def test_a_split_fits_its_shape_model_samples_only_and_writes_evaluate_tables(fitted):
     data, summary = fitted
     out = data / "fits" / "seed-0-k1-build-c0"

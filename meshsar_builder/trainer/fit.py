@@ -51,7 +51,7 @@ from tqdm import tqdm
 
 from meshsar_builder.dataset.readers import MeshSARDataset
 from meshsar_builder.dataset.shards import loss_grid_indices, read_index
-from meshsar_builder.pipeline.errors import InputError
+from meshsar_builder.pipeline.errors import InputError, MeshsarError
 from meshsar_builder.pipeline.io import read_json, write_bytes, write_json
 from meshsar_builder.radar.focused import FocusedParams, focused_loss
 from meshsar_builder.radar.noise import recorded_echo
@@ -331,18 +331,27 @@ def _fit_items(out: Path, record: dict, items: list, index: dict, scale: float, 
                extra: dict, title: str, progress: bool) -> dict:
     """Fit each (id, metric seed, load -> (sample, model tensors, its FitParams)) item, keeping the fits that
     out/fits.json already holds with these settings (a rerun adds a run's rows or resumes);
-    writes fits.json, metrics.csv and summary.json / .md; returns the summary."""
+    writes fits.json, metrics.csv and summary.json / .md; returns the summary. A sample whose fit fails (the
+    radar refuses to simulate a correction round's mesh: one that drifted out of the images) is named in
+    fits.json's `failed` and summary.md, and the others go on; a rerun tries it again."""
     previous = read_json(out / "fits.json") if (out / "fits.json").exists() else {}
     kept = previous.get("samples", {}) if all(previous.get(k) == v for k, v in record.items()) else {}
-    rows, fits = [], {}
+    rows, fits, failed = [], {}, {}
     for sid, seed, load in tqdm(items, desc=f"fit {out.name}", disable=not progress):
-        fits[sid] = kept.get(sid) or _fit_sample(*load(), seed, index, scale, setup, simulate, samples)
-        rows += fits[sid]["rows"] + extra.get(sid, [])
-        write_json(out / "fits.json", {**record, "samples": fits})
+        try:
+            fits[sid] = kept.get(sid) or _fit_sample(*load(), seed, index, scale, setup, simulate, samples)
+            rows += fits[sid]["rows"] + extra.get(sid, [])
+        except (MeshsarError, ValueError) as e:
+            failed[sid] = f"{type(e).__name__}: {e}"
+        write_json(out / "fits.json", {**record, "samples": fits, "failed": failed})
+    if not fits:
+        raise InputError(f"{out}: every sample's fit failed: {failed}")
     summary = summarise(rows)
     write_csv(out / "metrics.csv", rows)
     write_json(out / "summary.json", summary)
-    write_bytes(out / "summary.md", f"# Shape model fitted to the radar alone: {title}\n\n{markdown(summary)}".encode())
+    failures = "".join(f"\n- {sid} failed: {message}" for sid, message in failed.items())
+    write_bytes(out / "summary.md", f"# Shape model fitted to the radar alone: {title}\n\n{markdown(summary)}"
+                                    f"{failures}".encode())
     return summary
 
 
