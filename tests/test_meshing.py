@@ -121,8 +121,9 @@ def test_a_repair_failure_names_every_step_the_repair_took():
 
     record = {"euler_before": -12, "labels": {"myo": {"holes_filled": 31, "islands_dropped": 2, "island_voxels": 9}},
               "walls_filled": [{"structures": ["myo", "rv"], "voxels": 282}], "contacts_cut": [], "handles": []}
-    assert _summary(record) == ("Euler characteristic before -12; labels cleaned: ['myo 31 hole vox filled, 2 islands "
-                                "(9 vox) dropped']; walls filled: ['myo-rv 282 vox']; contacts cut: none; handles: none")
+    assert _summary(record) == ("Euler characteristic before -12; labels cleaned: ['myo 31 hole vox filled, "
+                                "2 islands (9 vox) dropped']; walls filled: ['myo-rv 282 vox']; contacts cut: none; "
+                                "handles: none")
 
 
 def _ventricle(shape, voxel_mm, centre_mm):

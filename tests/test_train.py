@@ -220,8 +220,8 @@ def test_the_raw_radar_loss_reads_the_builds_radar_and_its_noise_free_echo():
     sphere = trimesh.creation.icosphere(2)
     verts, faces = torch.tensor(sphere.vertices * (35.0, 30.0, 25.0)), torch.tensor(sphere.faces)
     loss = RP.loss_grid(radar)
-    clean = torch.stack([echo_torch(verts, faces, loss["positions_mm"][v], loss["frequencies_hz"], radar).reshape(8, 8, 4)
-                         for v in radar.views])[None]  # (1, V, Lx, Ly, Lf)
+    clean = torch.stack([echo_torch(verts, faces, loss["positions_mm"][v], loss["frequencies_hz"], radar)
+                         .reshape(8, 8, 4) for v in radar.views])[None]  # (1, V, Lx, Ly, Lf)
     batch = {"echo_clean": clean, "echo_noisy": clean + 0.5 * clean.abs().mean(), "echo": torch.zeros(1, 3, 4, 4, 4)}
     torch.testing.assert_close(geometry.echo_targets(batch, "clean"), clean.reshape(1, 3, 64, 4))
     torch.testing.assert_close(geometry.echo_targets(batch, "recorded"), batch["echo_noisy"].reshape(1, 3, 64, 4))

@@ -286,7 +286,8 @@ def lv_gaps_to_myo(verts: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> 
     return out, relabelled
 
 
-def border_sections(chosen: np.ndarray, voxel_mm: np.ndarray, skip_axis: int | None = None) -> dict[str, dict[str, float]]:
+def border_sections(chosen: np.ndarray, voxel_mm: np.ndarray,
+                    skip_axis: int | None = None) -> dict[str, dict[str, float]]:
     """{structure: {face: mm^2}}: how much of each chamber (CHAMBERS) lies on each face of the label map's box.
 
     chosen : (X, Y, Z) uint8 canonical ids, voxel_mm : (3,). Faces are named by voxel axis and end ("axis 2
@@ -320,10 +321,11 @@ def check_border(chosen: np.ndarray, voxel_mm: np.ndarray, skip_axis: int | None
 
 def repair_summary(record: dict) -> str:
     """Every step the repair took, for a failure's message (a failed item writes no sidecar to read it in)."""
-    labels = [f"{s} {c['holes_filled']} hole vox filled, {c['islands_dropped']} islands ({c['island_voxels']} vox) dropped"
-              for s, c in record.get("labels", {}).items()]
+    labels = [f"{s} {c['holes_filled']} hole vox filled, {c['islands_dropped']} islands "
+              f"({c['island_voxels']} vox) dropped" for s, c in record.get("labels", {}).items()]
     walls = [f"{'-'.join(w['structures'])} {w['voxels']} vox" for w in record.get("walls_filled", [])]
     contacts = [f"{'-'.join(c['structures'])} {c['voxels']} vox" for c in record.get("contacts_cut", [])]
-    handles = [f"{h['kind']} {h['voxels']} vox at {h['position_mm']} ({'/'.join(h['structures'])})" for h in record.get("handles", [])]
+    handles = [f"{h['kind']} {h['voxels']} vox at {h['position_mm']} ({'/'.join(h['structures'])})"
+               for h in record.get("handles", [])]
     return (f"Euler characteristic before {record.get('euler_before', '?')}; labels cleaned: {labels or 'none'}; "
             f"walls filled: {walls or 'none'}; contacts cut: {contacts or 'none'}; handles: {handles or 'none'}")

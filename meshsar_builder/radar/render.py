@@ -60,7 +60,8 @@ def _view_signal(tri, points, diffuse, vis, radar: RadarParams, view: str, freqs
             len(lit[2]))
 
 
-def echo_facets(verts: np.ndarray, faces: np.ndarray, radar: RadarParams) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def echo_facets(verts: np.ndarray, faces: np.ndarray,
+                radar: RadarParams) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """The facets the echo sums: the mesh, its facets wider than the plane wave holds across split.
 
     verts : (n, 3) float mm; faces : (m, 3) int. The facet integral (DESIGN section 4) takes the wave across
