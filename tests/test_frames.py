@@ -444,6 +444,23 @@ def test_a_build_meshes_each_frame_of_a_4d_map(tmp_path, tmp_recipe):
     assert [nib.load(str(tmp_path / "data" / "s1_cine.nii.gz")).shape[3]] == [3]
 
 
+def test_a_failing_frame_of_a_4d_map_is_named_by_its_t_index(tmp_path, tmp_recipe):
+    """One file holds every frame: a frame's failure names the file and its T index, and the others build."""
+    from meshsar_builder.pipeline.runner import build
+
+    from .conftest import ball_volume
+
+    (small, affine), (large, _) = (ball_volume((28, 28, 28), (1, 1, 1), r) for r in (9.0, 16.0))  # 16: on the border
+    save_nifti(tmp_path / "data" / "s1_cine.nii.gz", np.stack([small, large], axis=-1).astype(np.uint8), affine)
+    recipe = tmp_recipe(f'name = "c"\n[[sources]]\nkind = "nifti"\npath = "{tmp_path / "data"}"\n'
+                        f'labels = {{ lv = 1 }}\nregex = "(?P<subject>s\\\\d)_cine"\nuse = "direct"\n')
+    results = build(R.load(recipe), tmp_path / "out", until="meshes")
+    (failure,) = results.failures
+    assert failure["item"] == "nifti-s1-f01"
+    assert "s1_cine.nii.gz (T index 1): the label map's border cuts the heart" in failure["message"]
+    assert (tmp_path / "out" / "meshes" / "nifti-s1-f00.ply").exists()
+
+
 def _remeshed(source: str, frame: int, phase: str = "", provenance: str = "annotated", subject: str = "p01") -> dict:
     return {"source": source, "subject": subject, "frame": frame, "phase": phase, "provenance": provenance,
             "use": "direct", "cycle_fraction": None}
